@@ -1,0 +1,517 @@
+"""The functional environment: ``make`` decides static structure, ``reset``/``step`` are pure functions.
+
+``env = make(system, task, **options)`` holds only what is fixed for every parallel copy (system, task,
+trajectory shape and plane, frequencies, episode length, integrator, action mode, reward type, observation
+layout). Everything that may differ between copies lives in ``EnvParams`` (sweep it with ``jax.vmap``) or in
+``EnvState`` (the PRNG key travels there, so a rollout is fully determined by the reset key and the params).
+
+Step semantics (control step ``k -> k + 1``):
+
+1. ``u_cmd`` is the action (``action_mode="physical"``) or its conversion (``"normalized"``);
+2. the applied input is ``u = clip(u_cmd, u_low, u_high)``, the actuator limits of the plant (saturation is
+   physics; the commanded input is reported in ``info["u_cmd"]`` and the applied one in ``info["u"]``);
+3. the plant integrates ``dynamics`` with the episode's physical parameters ``state.physics`` over
+   ``physics_freq / ctrl_freq`` substeps;
+4. the reward compares ``x_{k+1}`` with ``x_ref[k+1]`` and ``u`` with ``u_ref[k]``, the same indices for every
+   system, so the rewards of an episode sum to ``-J`` of the paper less its constant ``x_0`` term.
+
+Rewards (``reward_type``), with ``c = 1/2 e^T Q e + 1/2 du^T R du``, ``e = x_{k+1} - x_ref[k+1]``,
+``du = u - u_ref[k]``:
+
+- ``"quadratic"``: ``-c``;
+- ``"exponential"``: ``exp(-c)``, in (0, 1];
+- ``"upright"`` (cart-pole only): ``1`` when ``x_{k+1}`` is inside the failure bounds, else ``0`` (the classic
+  cart-pole reward; the return is the number of upright steps).
+
+``cost`` is the constrained-MDP cost: the number of violated constraint rows at the step. No constraints are
+defined by ``make`` yet, so it is zero.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from scg_jax import trajectories
+from scg_jax._pytree import pytree_dataclass
+from scg_jax.backends import jax_backend
+from scg_jax.integrators import INTEGRATORS, make_discrete_dynamics
+from scg_jax.systems import System, get_system
+
+TASKS = ("stabilization", "tracking")
+ACTION_MODES = ("physical", "normalized")
+REWARD_TYPES = ("quadratic", "exponential", "upright")
+TRAJECTORY_KEYS = ("shape", "num_cycles", "plane", "offset", "scale")
+
+
+@pytree_dataclass
+class TrajectoryParams:
+    """Traced trajectory settings (the shape and plane are static, on the env).
+
+    Attributes:
+        scale: s, m (negative flips the shape).
+        offset: (2,) in-plane offset, m.
+        num_cycles: cycles per episode; the period is ``episode_len_sec / num_cycles``.
+    """
+
+    scale: Any
+    offset: Any
+    num_cycles: Any
+
+
+@pytree_dataclass
+class EnvParams:
+    """Everything that may differ between parallel copies; batch any leaf and ``jax.vmap`` over it.
+
+    Attributes:
+        physics: the system's ``Params``: the nominal plant, copied into ``EnvState.physics`` at reset.
+        Q: (nx, nx) state cost weight. R: (nu, nu) input cost weight.
+        goal: (nx,) stabilization goal state.
+        goal_tolerance: Euclidean distance to ``goal`` under which ``info["goal_reached"]`` is true.
+        init_low, init_high: (nx,) bounds of the uniform initial-state distribution.
+        state_low, state_high: (nx,) failure bounds; leaving them sets ``info["out_of_bounds"]``.
+        trajectory: ``TrajectoryParams`` (used by the tracking task).
+        mse_weight: (nx,) weights of the squared tracking error reported as ``info["mse"]``.
+    """
+
+    physics: Any
+    Q: Any
+    R: Any
+    goal: Any
+    goal_tolerance: Any
+    init_low: Any
+    init_high: Any
+    state_low: Any
+    state_high: Any
+    trajectory: TrajectoryParams
+    mse_weight: Any
+
+
+@pytree_dataclass
+class EnvState:
+    """The state of one copy.
+
+    Attributes:
+        x: (nx,) physical state.
+        step: control-step counter (int32), 0 after reset.
+        key: PRNG key for everything random after reset.
+        physics: the plant's physical parameters in this episode.
+    """
+
+    x: Any
+    step: Any
+    key: Any
+    physics: Any
+
+
+class StepOutput(NamedTuple):
+    """What ``Env.step`` returns; ``info`` is a dict of arrays (see ``Env.step``)."""
+
+    obs: Any
+    state: EnvState
+    reward: Any
+    cost: Any
+    terminated: Any
+    truncated: Any
+    info: dict
+
+
+_OPTION_DEFAULTS = {
+    "ctrl_freq": 50,
+    "physics_freq": 1000,
+    "episode_len_sec": 5.0,
+    "integrator": "rk4",
+    "action_mode": "physical",
+    "reward_type": "quadratic",
+    "obs_goal_horizon": 0,
+    "done_on_out_of_bounds": True,
+    "done_on_goal": False,
+    "trajectory": None,
+    "physics": None,
+    "Q": None,
+    "R": None,
+    "goal": None,
+    "goal_tolerance": 0.05,
+    "init_low": None,
+    "init_high": None,
+    "mse_weight": None,
+}
+
+
+def _choice(name: str, value, allowed) -> None:
+    if value not in allowed:
+        raise ValueError(f"{name}: unknown value {value!r}; allowed values are {', '.join(map(str, allowed))}")
+
+
+def _vector(name: str, value, n: int) -> np.ndarray:
+    array = np.asarray(value, dtype=float)
+    if array.shape != (n,):
+        raise ValueError(f"{name}: expected {n} values, got shape {array.shape} ({np.asarray(value).tolist()!r})")
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name}: values must be finite, got {array.tolist()!r}")
+    return array
+
+
+def _weight(name: str, value, n: int) -> np.ndarray:
+    """A cost weight given as its diagonal (n,) or as a full symmetric positive semidefinite (n, n) matrix."""
+    array = np.asarray(value, dtype=float)
+    if array.shape == (n,):
+        array = np.diag(array)
+    if array.shape != (n, n):
+        raise ValueError(f"{name}: expected {n} diagonal values or an ({n}, {n}) matrix, got shape {array.shape}")
+    if not np.allclose(array, array.T) or np.linalg.eigvalsh(array).min() < -1e-12:
+        raise ValueError(f"{name}: must be symmetric positive semidefinite")
+    return array
+
+
+def _positive_int(name: str, value) -> int:
+    if isinstance(value, bool) or not float(value).is_integer() or value <= 0:
+        raise ValueError(f"{name}: must be a positive integer, got {value!r}")
+    return int(value)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Env:
+    """A functional environment; build it with ``scg_jax.make``. Hashable by identity, so it can be static."""
+
+    system: System
+    task: str
+    ctrl_freq: int
+    physics_freq: int
+    episode_len_sec: float
+    integrator: str
+    action_mode: str
+    reward_type: str
+    obs_goal_horizon: int
+    done_on_out_of_bounds: bool
+    done_on_goal: bool
+    trajectory_shape: str | None
+    trajectory_plane: str | None
+    _default_params_numpy: dict
+
+    # ----------------------------------------------------------------------------------------- structure
+    @property
+    def dt(self) -> float:
+        """Control period, s."""
+        return 1.0 / self.ctrl_freq
+
+    @property
+    def substeps(self) -> int:
+        """Physics steps per control step."""
+        return self.physics_freq // self.ctrl_freq
+
+    @property
+    def num_steps(self) -> int:
+        """Control steps per episode (the reference holds ``num_steps + 1`` points)."""
+        return round(self.episode_len_sec * self.ctrl_freq)
+
+    @property
+    def nx(self) -> int:
+        return self.system.nx
+
+    @property
+    def nu(self) -> int:
+        return self.system.nu
+
+    @property
+    def observation_size(self) -> int:
+        """``nx * (1 + obs_goal_horizon)``: the state followed by the next H reference states."""
+        return self.nx * (1 + self.obs_goal_horizon)
+
+    @property
+    def action_size(self) -> int:
+        return self.nu
+
+    @property
+    def default_params(self) -> EnvParams:
+        """Fresh ``EnvParams`` from the options given to ``make`` (arrays in the current default float dtype)."""
+        d = self._default_params_numpy
+        dtype = jnp.zeros(()).dtype
+        as_array = lambda value: jnp.asarray(value, dtype=dtype)  # noqa: E731
+        return EnvParams(
+            physics=jax.tree.map(as_array, d["physics"]),
+            Q=as_array(d["Q"]),
+            R=as_array(d["R"]),
+            goal=as_array(d["goal"]),
+            goal_tolerance=as_array(d["goal_tolerance"]),
+            init_low=as_array(d["init_low"]),
+            init_high=as_array(d["init_high"]),
+            state_low=as_array(self.system.state_low),
+            state_high=as_array(self.system.state_high),
+            trajectory=TrajectoryParams(
+                scale=as_array(d["trajectory"]["scale"]),
+                offset=as_array(d["trajectory"]["offset"]),
+                num_cycles=as_array(d["trajectory"]["num_cycles"]),
+            ),
+            mse_weight=as_array(d["mse_weight"]),
+        )
+
+    # ----------------------------------------------------------------------------------------- physics
+    def discrete_dynamics(self):
+        """``step(x, u, params, xp, f_ext=None) -> x_next`` over one control period (the plant's integrator)."""
+        return make_discrete_dynamics(
+            self.system.dynamics, self.integrator, self.dt, self.substeps, self.system.velocity_mask
+        )
+
+    def integrate(self, x, u, physics, f_ext=None):
+        """Advance the plant one control period with input ``u`` (N) held; JAX arrays (nx,) -> (nx,)."""
+        return self.discrete_dynamics()(x, u, physics, jax_backend, f_ext)
+
+    def input_bounds(self, physics):
+        """Actuator limits ``(u_low, u_high)``, each (nu,), of a plant with parameters ``physics``."""
+        low, high = self.system.input_bounds(physics)
+        return jnp.asarray(low), jnp.asarray(high)
+
+    def action_to_input(self, action, params: EnvParams):
+        """Physical input (nu,) for an action (nu,) in this env's ``action_mode``."""
+        if self.action_mode == "normalized":
+            return self.system.action_to_input(action, params.physics)
+        return action
+
+    def input_to_action(self, u, params: EnvParams):
+        """Inverse of ``action_to_input``."""
+        if self.action_mode == "normalized":
+            return self.system.input_to_action(u, params.physics)
+        return u
+
+    # ----------------------------------------------------------------------------------------- reference
+    def reference_at(self, step, params: EnvParams):
+        """Reference ``(x_ref (nx,), u_ref (nu,))`` at control step ``step`` (clamped to ``[0, num_steps]``)."""
+        u_ref = jnp.asarray(self.system.equilibrium_input(params.physics), dtype=params.goal.dtype)
+        if self.task == "stabilization":
+            return params.goal, u_ref
+        k = jnp.clip(step, 0, self.num_steps)
+        traj = params.trajectory
+        period = self.episode_len_sec / traj.num_cycles
+        position, velocity = trajectories.world_reference(
+            self.trajectory_shape, self.trajectory_plane, k * self.dt, period, traj.scale, traj.offset
+        )
+        x_ref = jnp.zeros(self.nx, dtype=position.dtype)
+        for axis, pos_index, vel_index in self.system.tracking_axes:
+            x_ref = x_ref.at[pos_index].set(position[axis]).at[vel_index].set(velocity[axis])
+        return x_ref, u_ref
+
+    def reference(self, params: EnvParams):
+        """The whole episode's reference: ``x_ref (num_steps + 1, nx)`` and ``u_ref (num_steps, nu)``."""
+        x_ref, _ = jax.vmap(lambda k: self.reference_at(k, params))(jnp.arange(self.num_steps + 1))
+        _, u_ref = jax.vmap(lambda k: self.reference_at(k, params))(jnp.arange(self.num_steps))
+        return x_ref, u_ref
+
+    # ----------------------------------------------------------------------------------------- reset / step
+    def observe(self, state: EnvState, params: EnvParams):
+        """Observation (observation_size,): ``x`` then ``x_ref`` at steps ``k+1 .. k+H``."""
+        if self.obs_goal_horizon == 0:
+            return state.x
+        steps = state.step + 1 + jnp.arange(self.obs_goal_horizon)
+        goals, _ = jax.vmap(lambda k: self.reference_at(k, params))(steps)
+        return jnp.concatenate([state.x, goals.reshape(-1)])
+
+    def reset(self, key, params: EnvParams):
+        """Start an episode: ``x_0 ~ U(init_low, init_high)``. Returns ``(obs, state)``."""
+        key, key_init = jax.random.split(key)
+        x0 = jax.random.uniform(
+            key_init, (self.nx,), dtype=params.init_low.dtype, minval=params.init_low, maxval=params.init_high
+        )
+        state = EnvState(x=x0, step=jnp.zeros((), jnp.int32), key=key, physics=params.physics)
+        return self.observe(state, params), state
+
+    def step(self, state: EnvState, action, params: EnvParams) -> StepOutput:
+        """Advance one control step.
+
+        Args:
+            state: ``EnvState`` of one copy. action: (nu,) in this env's ``action_mode``. params: ``EnvParams``.
+
+        Returns:
+            ``StepOutput`` with ``info`` holding ``mse`` (weighted squared tracking error of ``x_{k+1}``),
+            ``quadratic_cost`` (``c`` above), ``out_of_bounds``, ``goal_reached``, ``nonfinite`` (the
+            integration produced a non-finite state: the episode ends and the last finite state is kept),
+            ``step`` (k + 1), ``u_cmd`` and ``u`` (commanded and applied input, N).
+        """
+        u_cmd = self.action_to_input(action, params)
+        u_low, u_high = self.input_bounds(state.physics)
+        u = jnp.clip(u_cmd, u_low, u_high)
+        x_next = self.integrate(state.x, u, state.physics)
+        finite = jnp.all(jnp.isfinite(x_next))
+        x_next = jnp.where(finite, x_next, state.x)
+        step = state.step + 1
+
+        x_ref, _ = self.reference_at(step, params)
+        _, u_ref = self.reference_at(state.step, params)
+        error = x_next - x_ref
+        du = u - u_ref
+        quadratic_cost = 0.5 * error @ params.Q @ error + 0.5 * du @ params.R @ du
+        out_of_bounds = jnp.any((x_next < params.state_low) | (x_next > params.state_high))
+        goal_reached = (
+            jnp.linalg.norm(x_next - params.goal) < params.goal_tolerance
+            if self.task == "stabilization"
+            else jnp.zeros((), bool)
+        )
+        terminated = ~finite
+        if self.done_on_out_of_bounds:
+            terminated = terminated | out_of_bounds
+        if self.done_on_goal:
+            terminated = terminated | goal_reached
+        truncated = (step >= self.num_steps) & ~terminated
+
+        if self.reward_type == "quadratic":
+            reward = -quadratic_cost
+        elif self.reward_type == "exponential":
+            reward = jnp.exp(-quadratic_cost)
+        else:
+            reward = jnp.where(out_of_bounds, 0.0, 1.0).astype(x_next.dtype)
+
+        next_state = state.replace(x=x_next, step=step)
+        info = {
+            "mse": jnp.sum(params.mse_weight * error**2),
+            "quadratic_cost": quadratic_cost,
+            "out_of_bounds": out_of_bounds,
+            "goal_reached": goal_reached,
+            "nonfinite": ~finite,
+            "step": step,
+            "u_cmd": u_cmd,
+            "u": u,
+        }
+        return StepOutput(
+            obs=self.observe(next_state, params),
+            state=next_state,
+            reward=reward,
+            cost=jnp.zeros((), x_next.dtype),
+            terminated=terminated,
+            truncated=truncated,
+            info=info,
+        )
+
+    # ----------------------------------------------------------------------------------------- symbolic
+    def symbolic_model(self, params: EnvParams, discretization: str = "env"):
+        """The CasADi mirror of this env for the (prior) parameters in ``params``; see ``scg_jax.symbolic``."""
+        from scg_jax.symbolic import build_symbolic_model
+
+        return build_symbolic_model(self, params, discretization)
+
+
+def make(system: str, task: str = "stabilization", **options) -> Env:
+    """Build an environment.
+
+    Args:
+        system: ``"cartpole"``, ``"quadrotor_1d"``, ``"quadrotor_2d"`` or ``"quadrotor_3d"``.
+        task: ``"stabilization"`` or ``"tracking"``.
+        **options:
+            ctrl_freq (Hz, default 50), physics_freq (Hz, a multiple of ctrl_freq, default 1000),
+            episode_len_sec (s, default 5; episode_len_sec * ctrl_freq must be an integer),
+            integrator (``euler``, ``semi_implicit_euler``, ``rk4``; default rk4),
+            action_mode (``physical`` (default) or ``normalized``), reward_type (``quadratic`` (default),
+            ``exponential``, ``upright``), obs_goal_horizon (H >= 0 reference points appended to the
+            observation), done_on_out_of_bounds (default True), done_on_goal (stabilization, default False),
+            trajectory (tracking: dict with ``shape`` (circle, sinusoid, figure8, square; default circle),
+            ``num_cycles`` (default 1), ``plane``, ``offset`` (2,), ``scale``; defaults per system),
+            physics (dict of ``Params`` fields to override), Q (nx,) or (nx, nx), R (nu,) or (nu, nu),
+            goal (nx,), goal_tolerance, init_low (nx,), init_high (nx,), mse_weight (nx,).
+
+    Raises:
+        ValueError: naming the option and the allowed values for anything unknown or inconsistent.
+    """
+    spec = get_system(system)
+    _choice("task", task, TASKS)
+    unknown = sorted(set(options) - set(_OPTION_DEFAULTS))
+    if unknown:
+        raise ValueError(f"{unknown[0]}: unknown option; allowed options are {', '.join(_OPTION_DEFAULTS)}")
+    opts = {**_OPTION_DEFAULTS, **options}
+
+    ctrl_freq = _positive_int("ctrl_freq", opts["ctrl_freq"])
+    physics_freq = _positive_int("physics_freq", opts["physics_freq"])
+    if physics_freq % ctrl_freq:
+        raise ValueError(
+            f"physics_freq: must be a multiple of ctrl_freq ({ctrl_freq} Hz), got {physics_freq} Hz; allowed "
+            f"values are {ctrl_freq}, {2 * ctrl_freq}, {3 * ctrl_freq}, ..."
+        )
+    episode_len_sec = float(opts["episode_len_sec"])
+    steps = episode_len_sec * ctrl_freq
+    if episode_len_sec <= 0 or not math.isclose(steps, round(steps), abs_tol=1e-9):
+        raise ValueError(
+            f"episode_len_sec: must be positive and a whole number of control periods (1/{ctrl_freq} s), "
+            f"got {opts['episode_len_sec']!r}"
+        )
+    _choice("integrator", opts["integrator"], INTEGRATORS)
+    _choice("action_mode", opts["action_mode"], ACTION_MODES)
+    _choice("reward_type", opts["reward_type"], REWARD_TYPES)
+    if opts["reward_type"] == "upright" and spec.name != "cartpole":
+        raise ValueError(
+            f"reward_type: 'upright' is only for cartpole; allowed values for {spec.name} are quadratic, exponential"
+        )
+    horizon = opts["obs_goal_horizon"]
+    if isinstance(horizon, bool) or not float(horizon).is_integer() or horizon < 0:
+        raise ValueError(f"obs_goal_horizon: must be a non-negative integer, got {horizon!r}")
+    if opts["done_on_goal"] and task != "stabilization":
+        raise ValueError("done_on_goal: only allowed with task 'stabilization'")
+
+    physics_overrides = dict(opts["physics"] or {})
+    fields = [f.name for f in dataclasses.fields(spec.params_cls)]
+    for name in physics_overrides:
+        if name not in fields:
+            raise ValueError(f"physics.{name}: unknown parameter of {spec.name}; allowed are {', '.join(fields)}")
+    physics = spec.params_cls(**{k: float(v) for k, v in physics_overrides.items()})
+    spec.validate_params(physics)
+
+    trajectory = None
+    shape = plane = None
+    if task == "tracking":
+        given = dict(opts["trajectory"] or {})
+        for name in given:
+            if name not in TRAJECTORY_KEYS:
+                raise ValueError(f"trajectory.{name}: unknown key; allowed keys are {', '.join(TRAJECTORY_KEYS)}")
+        shape = trajectories.check_shape(given.get("shape", "circle"))
+        plane = given.get("plane", spec.default_plane)
+        trajectories.plane_axes(plane)
+        num_cycles = float(given.get("num_cycles", 1))
+        if not num_cycles > 0:
+            raise ValueError(f"trajectory.num_cycles: must be positive, got {given['num_cycles']!r}")
+        trajectory = {
+            "scale": float(given.get("scale", spec.default_scale)),
+            "offset": _vector("trajectory.offset", given.get("offset", spec.default_offset), 2),
+            "num_cycles": num_cycles,
+        }
+    elif opts["trajectory"] is not None:
+        raise ValueError("trajectory: only allowed with task 'tracking'")
+    if trajectory is None:  # unused by stabilization but kept so params have one structure per system
+        trajectory = {"scale": spec.default_scale, "offset": np.asarray(spec.default_offset), "num_cycles": 1.0}
+
+    nx, nu = spec.nx, spec.nu
+    init_low = _vector("init_low", spec.init_low if opts["init_low"] is None else opts["init_low"], nx)
+    init_high = _vector("init_high", spec.init_high if opts["init_high"] is None else opts["init_high"], nx)
+    if np.any(init_low > init_high):
+        raise ValueError(f"init_low: must not exceed init_high, got {init_low.tolist()} > {init_high.tolist()}")
+    tolerance = float(opts["goal_tolerance"])
+    if not tolerance > 0:
+        raise ValueError(f"goal_tolerance: must be positive, got {opts['goal_tolerance']!r}")
+    defaults = {
+        "physics": physics,
+        "Q": _weight("Q", spec.q_diag if opts["Q"] is None else opts["Q"], nx),
+        "R": _weight("R", spec.r_diag if opts["R"] is None else opts["R"], nu),
+        "goal": _vector("goal", spec.goal if opts["goal"] is None else opts["goal"], nx),
+        "goal_tolerance": tolerance,
+        "init_low": init_low,
+        "init_high": init_high,
+        "trajectory": trajectory,
+        "mse_weight": _vector("mse_weight", spec.mse_weight if opts["mse_weight"] is None else opts["mse_weight"], nx),
+    }
+    return Env(
+        system=spec,
+        task=task,
+        ctrl_freq=ctrl_freq,
+        physics_freq=physics_freq,
+        episode_len_sec=episode_len_sec,
+        integrator=opts["integrator"],
+        action_mode=opts["action_mode"],
+        reward_type=opts["reward_type"],
+        obs_goal_horizon=int(horizon),
+        done_on_out_of_bounds=bool(opts["done_on_out_of_bounds"]),
+        done_on_goal=bool(opts["done_on_goal"]),
+        trajectory_shape=shape,
+        trajectory_plane=plane,
+        _default_params_numpy=defaults,
+    )

@@ -1,0 +1,117 @@
+"""Auto-reset and batched rollouts: the one place where copies are batched and episodes restarted.
+
+A policy is a pure function ``policy(obs, state, params, key) -> action`` for one copy; ``make_rollout`` vmaps
+it together with ``Env.step`` over ``num_envs`` copies and scans over ``num_steps`` control steps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from scg_jax.env import Env, EnvParams, EnvState, StepOutput
+
+Policy = Callable[[Any, EnvState, EnvParams, Any], Any]
+
+
+def auto_reset_step(env: Env, state: EnvState, action, params: EnvParams) -> StepOutput:
+    """``env.step``, then a fresh episode wherever it terminated or was truncated.
+
+    The reset key is split from the finished episode's own key, so the whole sequence of episodes is still
+    determined by the first reset key. The observation of the finished step is kept as
+    ``info["final_obs"]`` (equal to ``obs`` where no reset happened); ``terminated``, ``truncated``,
+    ``reward`` and the rest of ``info`` describe the finished step.
+    """
+    out = env.step(state, action, params)
+    done = out.terminated | out.truncated
+    reset_key, _ = jax.random.split(out.state.key)
+    reset_obs, reset_state = env.reset(reset_key, params)
+    obs = jnp.where(done, reset_obs, out.obs)
+    next_state = jax.tree.map(lambda fresh, old: jnp.where(done, fresh, old), reset_state, out.state)
+    return out._replace(obs=obs, state=next_state, info={**out.info, "final_obs": out.obs})
+
+
+class Trajectory(NamedTuple):
+    """A batched rollout; arrays are ``(num_steps, num_envs, ...)``.
+
+    Attributes:
+        obs, x: observation and physical state *before* each step (x of the state the action was taken in).
+        action: the policy's actions. reward, cost, terminated, truncated, info: from ``Env.step``.
+        final_state: ``EnvState`` after the last step, ``(num_envs, ...)``.
+    """
+
+    obs: Any
+    x: Any
+    action: Any
+    reward: Any
+    cost: Any
+    terminated: Any
+    truncated: Any
+    info: dict
+    final_state: EnvState
+
+
+def make_rollout(
+    env: Env,
+    policy: Policy,
+    num_envs: int,
+    num_steps: int | None = None,
+    auto_reset: bool = True,
+    batched_params: bool = False,
+):
+    """Build a jitted ``rollout(key, params) -> Trajectory`` of ``num_envs`` copies.
+
+    Args:
+        env: the environment. policy: ``policy(obs, state, params, key) -> action`` for one copy.
+        num_envs: number of parallel copies. num_steps: control steps (default: one episode).
+        auto_reset: restart finished episodes (otherwise a finished copy keeps stepping past its end; its
+            ``terminated``/``truncated`` flags tell where to cut).
+        batched_params: ``params`` has a leading axis of size ``num_envs`` on every leaf (a sweep).
+
+    Calling the returned function again with new keys or new params values of the same shapes does not
+    retrace.
+    """
+    num_steps = env.num_steps if num_steps is None else int(num_steps)
+    params_axis = 0 if batched_params else None
+    step_fn = (lambda s, a, p: auto_reset_step(env, s, a, p)) if auto_reset else env.step
+
+    def one_step(obs, state, params, key):
+        action = policy(obs, state, params, key)
+        out = step_fn(state, action, params)
+        return out, action
+
+    batched_step = jax.vmap(one_step, in_axes=(0, 0, params_axis, 0))
+    batched_reset = jax.vmap(env.reset, in_axes=(0, params_axis))
+
+    @jax.jit
+    def rollout(key, params: EnvParams) -> Trajectory:
+        key_reset, key_policy = jax.random.split(key)
+        obs, state = batched_reset(jax.random.split(key_reset, num_envs), params)
+
+        def body(carry, step_key):
+            obs, state = carry
+            out, action = batched_step(obs, state, params, jax.random.split(step_key, num_envs))
+            record = (obs, state.x, action, out.reward, out.cost, out.terminated, out.truncated, out.info)
+            return (out.obs, out.state), record
+
+        (_, final_state), records = jax.lax.scan(body, (obs, state), jax.random.split(key_policy, num_steps))
+        return Trajectory(*records, final_state=final_state)
+
+    return rollout
+
+
+def rollout(
+    env: Env,
+    params: EnvParams,
+    policy: Policy,
+    key,
+    num_envs: int,
+    num_steps: int | None = None,
+    auto_reset: bool = True,
+    batched_params: bool = False,
+) -> Trajectory:
+    """One-shot convenience for ``make_rollout(...)(key, params)``; reuse ``make_rollout`` in loops."""
+    return make_rollout(env, policy, num_envs, num_steps, auto_reset, batched_params)(key, params)

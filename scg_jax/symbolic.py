@@ -1,0 +1,141 @@
+"""The CasADi mirror of an environment, built by calling the system's one ``dynamics`` on ``SX`` symbols.
+
+Controllers (LQR, iLQR, MPC, GP-MPC, CBF, safety filters) are given a ``SymbolicModel`` built from *prior*
+parameters, which may deliberately differ from the simulated plant; pass the prior you want in ``params``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import casadi as cs
+import jax
+import numpy as np
+
+from scg_jax.backends import casadi_backend
+from scg_jax.integrators import make_discrete_dynamics
+
+DISCRETIZATIONS = ("env", "rk4")
+
+
+@dataclasses.dataclass(frozen=True)
+class Linearization:
+    """``x_dot ~ A (x - x0) + B (u - u0) + f(x0, u0)`` and ``x_next ~ Ad (x - x0) + Bd (u - u0) + fd(x0, u0)``."""
+
+    A: np.ndarray
+    B: np.ndarray
+    Ad: np.ndarray
+    Bd: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class SymbolicModel:
+    """CasADi functions of the dynamics and cost for one set of (prior) parameters.
+
+    Attributes:
+        nx, nu: state and input sizes. dt: control period (s).
+        x, u: the ``SX`` symbols (nx, 1) and (nu, 1) the functions are built from.
+        fc: ``fc(x, u) -> x_dot``, continuous dynamics.
+        fd: ``fd(x, u) -> x_next`` over one control period: the env's integrator and substeps
+            (``discretization="env"``) or one RK4 step of length dt (``"rk4"``).
+        df: ``df(x, u) -> (A, B)``, Jacobians of ``fc``.
+        dfd: ``dfd(x, u) -> (Ad, Bd)``, Jacobians of ``fd``.
+        cost: ``cost(x, u, x_ref, u_ref) -> (l, l_x, l_u, l_xx, l_uu, l_xu)``, the stage cost
+            ``l = 1/2 (x - x_ref)^T Q (x - x_ref) + 1/2 (u - u_ref)^T R (u - u_ref)`` with its gradients (column
+            vectors) and Hessians (``l_xu`` is (nx, nu)).
+        Q, R: the cost weights (numpy).
+        x_ref: (num_steps + 1, nx) state reference; u_ref: (num_steps, nu) input reference.
+        discretization: ``"env"`` or ``"rk4"``.
+    """
+
+    nx: int
+    nu: int
+    dt: float
+    x: cs.SX
+    u: cs.SX
+    fc: cs.Function
+    fd: cs.Function
+    df: cs.Function
+    dfd: cs.Function
+    cost: cs.Function
+    Q: np.ndarray
+    R: np.ndarray
+    x_ref: np.ndarray
+    u_ref: np.ndarray
+    discretization: str
+
+    def linearize(self, x0, u0) -> Linearization:
+        """Continuous and discrete Jacobians about ``(x0 (nx,), u0 (nu,))``."""
+        A, B = self.df(np.asarray(x0, float), np.asarray(u0, float))
+        Ad, Bd = self.dfd(np.asarray(x0, float), np.asarray(u0, float))
+        return Linearization(A=np.array(A), B=np.array(B), Ad=np.array(Ad), Bd=np.array(Bd))
+
+
+def _to_float(name: str, value) -> float:
+    array = np.asarray(value, dtype=float)
+    if array.shape != ():
+        raise ValueError(
+            f"symbolic_model: params.physics.{name} must be a scalar (unbatched params), got shape {array.shape}"
+        )
+    return float(array)
+
+
+def build_symbolic_model(env, params, discretization: str = "env") -> SymbolicModel:
+    """Build the ``SymbolicModel`` of ``env`` for ``params`` (see ``Env.symbolic_model``)."""
+    if discretization not in DISCRETIZATIONS:
+        raise ValueError(
+            f"discretization: unknown value {discretization!r}; allowed values are {', '.join(DISCRETIZATIONS)}"
+        )
+    system = env.system
+    physics = system.params_cls(
+        **{f.name: _to_float(f.name, getattr(params.physics, f.name)) for f in dataclasses.fields(params.physics)}
+    )
+    nx, nu = system.nx, system.nu
+    x = cs.SX.sym("x", nx)
+    u = cs.SX.sym("u", nu)
+
+    x_dot = system.dynamics(x, u, physics, casadi_backend)
+    if discretization == "env":
+        step = env.discrete_dynamics()
+    else:
+        step = make_discrete_dynamics(system.dynamics, "rk4", env.dt, 1, system.velocity_mask)
+    x_next = step(x, u, physics, casadi_backend)
+
+    fc = cs.Function("fc", [x, u], [x_dot], ["x", "u"], ["x_dot"])
+    fd = cs.Function("fd", [x, u], [x_next], ["x", "u"], ["x_next"])
+    df = cs.Function("df", [x, u], [cs.jacobian(x_dot, x), cs.jacobian(x_dot, u)], ["x", "u"], ["A", "B"])
+    dfd = cs.Function("dfd", [x, u], [cs.jacobian(x_next, x), cs.jacobian(x_next, u)], ["x", "u"], ["Ad", "Bd"])
+
+    Q = np.asarray(params.Q, dtype=float)
+    R = np.asarray(params.R, dtype=float)
+    x_ref_sym = cs.SX.sym("x_ref", nx)
+    u_ref_sym = cs.SX.sym("u_ref", nu)
+    dx, du = x - x_ref_sym, u - u_ref_sym
+    stage = 0.5 * cs.mtimes([dx.T, Q, dx]) + 0.5 * cs.mtimes([du.T, R, du])
+    l_x, l_u = cs.gradient(stage, x), cs.gradient(stage, u)
+    cost = cs.Function(
+        "cost",
+        [x, u, x_ref_sym, u_ref_sym],
+        [stage, l_x, l_u, cs.jacobian(l_x, x), cs.jacobian(l_u, u), cs.jacobian(l_x, u)],
+        ["x", "u", "x_ref", "u_ref"],
+        ["l", "l_x", "l_u", "l_xx", "l_uu", "l_xu"],
+    )
+
+    x_ref, u_ref = jax.jit(env.reference)(params)
+    return SymbolicModel(
+        nx=nx,
+        nu=nu,
+        dt=env.dt,
+        x=x,
+        u=u,
+        fc=fc,
+        fd=fd,
+        df=df,
+        dfd=dfd,
+        cost=cost,
+        Q=Q,
+        R=R,
+        x_ref=np.asarray(x_ref, dtype=float),
+        u_ref=np.asarray(u_ref, dtype=float),
+        discretization=discretization,
+    )

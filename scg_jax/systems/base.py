@@ -1,0 +1,83 @@
+"""The static description every system module exports as ``SYSTEM``.
+
+A ``System`` is plain Python structure (decided at ``make``, never traced). The physics lives in the module's
+``Params`` pytree and its single ``dynamics`` function; everything here is layout and defaults.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class System:
+    """Layout, defaults and conversions of one system.
+
+    Attributes:
+        name: registry name, e.g. ``"cartpole"``.
+        params_cls: the frozen ``Params`` pytree class of primitive physical quantities.
+        dynamics: ``dynamics(x, u, params, xp, f_ext=None) -> x_dot``, the one set of equations.
+        state_names, input_names: names of the entries of ``x`` (nx,) and ``u`` (nu,).
+        f_ext_dim: number of components of the external force ``f_ext`` (N).
+        velocity_mask: (nx,) 1.0 for entries semi-implicit Euler advances first (velocities, rates).
+        state_low, state_high: (nx,) bounds whose violation ends an episode (``inf`` where unbounded).
+        init_low, init_high: (nx,) default uniform initial-state range.
+        goal: (nx,) default stabilization goal state.
+        tracking_axes: ``(world_axis, position_index, velocity_index)`` per world axis (0=x, 1=y, 2=z) the
+            tracking reference drives; other state entries of the reference are zero.
+        default_plane: default two-letter trajectory plane.
+        default_offset: default (2,) trajectory offset in that plane (m).
+        default_scale: default trajectory scale (m).
+        q_diag, r_diag: default diagonals of the cost weights Q (nx,) and R (nu,).
+        mse_weight: (nx,) default weights of the tracking error reported as ``info["mse"]``.
+        input_bounds: ``input_bounds(params) -> (u_low, u_high)`` actuator limits (nu,) each.
+        equilibrium_input: ``equilibrium_input(params) -> u_eq`` (nu,), the input holding the goal (hover).
+        action_to_input: ``action_to_input(action, params) -> u``, normalised RL action to physical input.
+        input_to_action: the inverse of ``action_to_input``.
+        validate_params: raises ValueError naming the field when a parameter value is not physical.
+    """
+
+    name: str
+    params_cls: type
+    dynamics: Callable[..., Any]
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    f_ext_dim: int
+    velocity_mask: np.ndarray
+    state_low: np.ndarray
+    state_high: np.ndarray
+    init_low: np.ndarray
+    init_high: np.ndarray
+    goal: np.ndarray
+    tracking_axes: tuple[tuple[int, int, int], ...]
+    default_plane: str
+    default_offset: tuple[float, float]
+    default_scale: float
+    q_diag: np.ndarray
+    r_diag: np.ndarray
+    mse_weight: np.ndarray
+    input_bounds: Callable[[Any], tuple[Any, Any]]
+    equilibrium_input: Callable[[Any], Any]
+    action_to_input: Callable[[Any, Any], Any]
+    input_to_action: Callable[[Any, Any], Any]
+    validate_params: Callable[[Any], None]
+
+    @property
+    def nx(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def nu(self) -> int:
+        return len(self.input_names)
+
+
+def require_positive(params, names, system: str) -> None:
+    """Raise a ValueError naming ``system.params.<field>`` for each non-positive or non-finite value."""
+    for name in names:
+        value = np.asarray(getattr(params, name), dtype=float)
+        if not np.all(np.isfinite(value)) or np.any(value <= 0.0):
+            raise ValueError(f"{system}.params.{name}: must be a positive finite number, got {value.tolist()!r}")
