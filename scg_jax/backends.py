@@ -13,6 +13,7 @@ from types import SimpleNamespace
 
 import casadi as cs
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 
@@ -33,6 +34,9 @@ jax_backend = SimpleNamespace(
     tan=jnp.tan,
     sqrt=jnp.sqrt,
     stack=jnp.stack,
+    concatenate=jnp.concatenate,
+    matmul=jnp.matmul,
+    select=lambda v, indices: v[np.asarray(indices, dtype=int)],
     constant=jnp.asarray,
     repeat=_repeat_jax,
 )
@@ -44,6 +48,9 @@ casadi_backend = SimpleNamespace(
     tan=cs.tan,
     sqrt=cs.sqrt,
     stack=lambda items: cs.vertcat(*items),
+    concatenate=lambda items: cs.vertcat(*items),
+    matmul=cs.mtimes,
+    select=lambda v, indices: v[list(indices)],
     constant=cs.DM,
     repeat=_repeat_python,
 )

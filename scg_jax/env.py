@@ -8,12 +8,15 @@ layout). Everything that may differ between copies lives in ``EnvParams`` (sweep
 Step semantics (control step ``k -> k + 1``):
 
 1. ``u_cmd`` is the action (``action_mode="physical"``) or its conversion (``"normalized"``);
-2. the applied input is ``u = clip(u_cmd, u_low, u_high)``, the actuator limits of the plant (saturation is
-   physics; the commanded input is reported in ``info["u_cmd"]`` and the applied one in ``info["u"]``);
-3. the plant integrates ``dynamics`` with the episode's physical parameters ``state.physics`` over
-   ``physics_freq / ctrl_freq`` substeps;
+2. the action-channel disturbances (and an action adversary) are added to ``u_cmd``, and the applied input is
+   that sum clipped to the plant's actuator limits (saturation is physics; ``info["u_cmd"]`` and ``info["u"]``
+   report both);
+3. the plant integrates ``dynamics`` with the episode's physical parameters ``state.physics`` and the
+   dynamics-channel force ``f_ext`` (held) over ``physics_freq / ctrl_freq`` substeps;
 4. the reward compares ``x_{k+1}`` with ``x_ref[k+1]`` and ``u`` with ``u_ref[k]``, the same indices for every
-   system, so the rewards of an episode sum to ``-J`` of the paper less its constant ``x_0`` term.
+   system, so the rewards of an episode sum to ``-J`` of the paper less its constant ``x_0`` term;
+5. constraints are evaluated at ``(x_{k+1}, u_cmd)``; the observation of ``x_{k+1}`` gets the
+   observation-channel disturbances.
 
 Rewards (``reward_type``), with ``c = 1/2 e^T Q e + 1/2 du^T R du``, ``e = x_{k+1} - x_ref[k+1]``,
 ``du = u - u_ref[k]``:
@@ -23,8 +26,9 @@ Rewards (``reward_type``), with ``c = 1/2 e^T Q e + 1/2 du^T R du``, ``e = x_{k+
 - ``"upright"`` (cart-pole only): ``1`` when ``x_{k+1}`` is inside the failure bounds, else ``0`` (the classic
   cart-pole reward; the return is the number of upright steps).
 
-``cost`` is the constrained-MDP cost: the number of violated constraint rows at the step. No constraints are
-defined by ``make`` yet, so it is zero.
+``cost`` is the constrained-MDP cost: 1 at a step where any constraint row is violated, else 0, so an
+episode's cost is its number of steps in violation. ``violation_penalty`` (>= 0) is *subtracted* from the reward
+at such steps, and ``done_on_violation`` ends the episode there.
 """
 
 from __future__ import annotations
@@ -37,7 +41,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from scg_jax import trajectories
+from scg_jax import constraints as constraints_lib
+from scg_jax import disturbances as disturbances_lib
+from scg_jax import randomization, trajectories
 from scg_jax._pytree import pytree_dataclass
 from scg_jax.backends import jax_backend
 from scg_jax.integrators import INTEGRATORS, make_discrete_dynamics
@@ -46,6 +52,7 @@ from scg_jax.systems import System, get_system
 TASKS = ("stabilization", "tracking")
 ACTION_MODES = ("physical", "normalized")
 REWARD_TYPES = ("quadratic", "exponential", "upright")
+CHANNEL_INDEX = {channel: i for i, channel in enumerate(disturbances_lib.CHANNELS)}
 TRAJECTORY_KEYS = ("shape", "num_cycles", "plane", "offset", "scale")
 
 
@@ -73,10 +80,15 @@ class EnvParams:
         Q: (nx, nx) state cost weight. R: (nu, nu) input cost weight.
         goal: (nx,) stabilization goal state.
         goal_tolerance: Euclidean distance to ``goal`` under which ``info["goal_reached"]`` is true.
-        init_low, init_high: (nx,) bounds of the uniform initial-state distribution.
+        init_state: ``DistributionParams`` of the initial state (nx,).
+        physics_randomization: ``{field: DistributionParams}`` of the randomised physical parameters.
         state_low, state_high: (nx,) failure bounds; leaving them sets ``info["out_of_bounds"]``.
         trajectory: ``TrajectoryParams`` (used by the tracking task).
         mse_weight: (nx,) weights of the squared tracking error reported as ``info["mse"]``.
+        constraints: tuple of ``LinearConstraintParams`` / ``QuadraticConstraintParams``, in option order.
+        violation_penalty: subtracted from the reward at a step in violation (>= 0).
+        disturbances: ``{channel: tuple of DisturbanceParams}``.
+        adversary_scale: (dim,) of the adversary's channel: the adversary input in [-1, 1] is multiplied by it.
     """
 
     physics: Any
@@ -84,12 +96,16 @@ class EnvParams:
     R: Any
     goal: Any
     goal_tolerance: Any
-    init_low: Any
-    init_high: Any
+    init_state: Any
+    physics_randomization: dict
     state_low: Any
     state_high: Any
     trajectory: TrajectoryParams
     mse_weight: Any
+    constraints: tuple
+    violation_penalty: Any
+    disturbances: dict
+    adversary_scale: Any
 
 
 @pytree_dataclass
@@ -99,14 +115,17 @@ class EnvState:
     Attributes:
         x: (nx,) physical state.
         step: control-step counter (int32), 0 after reset.
-        key: PRNG key for everything random after reset.
-        physics: the plant's physical parameters in this episode.
+        key: PRNG key for everything random after reset (split at every step).
+        physics: the plant's physical parameters in this episode (randomised ones as drawn).
+        disturbances: ``{channel: tuple of DisturbanceState}``, the per-episode draws (periodic phases, impulse
+            starts).
     """
 
     x: Any
     step: Any
     key: Any
     physics: Any
+    disturbances: dict
 
 
 class StepOutput(NamedTuple):
@@ -137,9 +156,14 @@ _OPTION_DEFAULTS = {
     "R": None,
     "goal": None,
     "goal_tolerance": 0.05,
-    "init_low": None,
-    "init_high": None,
+    "init_state": None,
+    "physics_randomization": None,
     "mse_weight": None,
+    "constraints": None,
+    "done_on_violation": False,
+    "violation_penalty": 0.0,
+    "disturbances": None,
+    "adversary": None,
 }
 
 
@@ -192,6 +216,12 @@ class Env:
     done_on_goal: bool
     trajectory_shape: str | None
     trajectory_plane: str | None
+    done_on_violation: bool
+    init_state_spec: randomization.DistributionSpec
+    physics_randomization_specs: dict
+    constraint_specs: tuple
+    disturbance_specs: dict
+    adversary_channel: str | None
     _default_params_numpy: dict
 
     # ----------------------------------------------------------------------------------------- structure
@@ -239,8 +269,11 @@ class Env:
             R=as_array(d["R"]),
             goal=as_array(d["goal"]),
             goal_tolerance=as_array(d["goal_tolerance"]),
-            init_low=as_array(d["init_low"]),
-            init_high=as_array(d["init_high"]),
+            init_state=randomization.DistributionParams(**jax.tree.map(as_array, d["init_state"])),
+            physics_randomization={
+                name: randomization.DistributionParams(**jax.tree.map(as_array, values))
+                for name, values in d["physics_randomization"].items()
+            },
             state_low=as_array(self.system.state_low),
             state_high=as_array(self.system.state_high),
             trajectory=TrajectoryParams(
@@ -249,7 +282,29 @@ class Env:
                 num_cycles=as_array(d["trajectory"]["num_cycles"]),
             ),
             mse_weight=as_array(d["mse_weight"]),
+            constraints=tuple(
+                constraints_lib.params_from_numpy(spec, values, as_array)
+                for spec, values in zip(self.constraint_specs, d["constraints"], strict=True)
+            ),
+            violation_penalty=as_array(d["violation_penalty"]),
+            disturbances={
+                channel: tuple(
+                    disturbances_lib.DisturbanceParams(
+                        **{
+                            k: (jnp.asarray(v) if k in ("start_step", "duration") else as_array(v))
+                            for k, v in values.items()
+                        }
+                    )
+                    for values in entries
+                )
+                for channel, entries in d["disturbances"].items()
+            },
+            adversary_scale=as_array(d["adversary_scale"]),
         )
+
+    def channel_dim(self, channel: str) -> int:
+        """Dimension of a disturbance channel: nu (action), nx (observation), f_ext_dim (dynamics)."""
+        return {"action": self.nu, "observation": self.nx, "dynamics": self.system.f_ext_dim}[channel]
 
     # ----------------------------------------------------------------------------------------- physics
     def discrete_dynamics(self):
@@ -304,38 +359,87 @@ class Env:
 
     # ----------------------------------------------------------------------------------------- reset / step
     def observe(self, state: EnvState, params: EnvParams):
-        """Observation (observation_size,): ``x`` then ``x_ref`` at steps ``k+1 .. k+H``."""
+        """Noise-free observation (observation_size,): ``x`` then ``x_ref`` at steps ``k+1 .. k+H``."""
         if self.obs_goal_horizon == 0:
             return state.x
         steps = state.step + 1 + jnp.arange(self.obs_goal_horizon)
         goals, _ = jax.vmap(lambda k: self.reference_at(k, params))(steps)
         return jnp.concatenate([state.x, goals.reshape(-1)])
 
-    def reset(self, key, params: EnvParams):
-        """Start an episode: ``x_0 ~ U(init_low, init_high)``. Returns ``(obs, state)``."""
-        key, key_init = jax.random.split(key)
-        x0 = jax.random.uniform(
-            key_init, (self.nx,), dtype=params.init_low.dtype, minval=params.init_low, maxval=params.init_high
+    def _disturb(self, channel: str, state: EnvState, params: EnvParams, key, step):
+        return disturbances_lib.channel_value(
+            self.disturbance_specs.get(channel, ()),
+            params.disturbances.get(channel, ()),
+            state.disturbances.get(channel, ()),
+            key,
+            step,
+            self.dt,
+            self.channel_dim(channel),
+            params.goal.dtype,
         )
-        state = EnvState(x=x0, step=jnp.zeros((), jnp.int32), key=key, physics=params.physics)
-        return self.observe(state, params), state
 
-    def step(self, state: EnvState, action, params: EnvParams) -> StepOutput:
+    def _noisy_observation(self, state: EnvState, params: EnvParams, key):
+        obs = self.observe(state, params)
+        if not self.disturbance_specs.get("observation"):
+            return obs
+        return obs.at[: self.nx].add(self._disturb("observation", state, params, key, state.step))
+
+    def reset(self, key, params: EnvParams):
+        """Start an episode: draw the initial state, the plant's randomised parameters and the per-episode
+        disturbance draws. Returns ``(obs, state)``."""
+        key, key_init, key_physics, key_disturbances, key_obs = jax.random.split(key, 5)
+        x0 = randomization.draw(self.init_state_spec, params.init_state, key_init)
+        physics = params.physics
+        physics_keys = jax.random.split(key_physics, max(len(self.physics_randomization_specs), 1))
+        for field_key, (name, spec) in zip(
+            physics_keys, sorted(self.physics_randomization_specs.items()), strict=False
+        ):
+            drawn = randomization.draw(
+                spec, params.physics_randomization[name], field_key, nominal=getattr(params.physics, name)
+            )
+            physics = physics.replace(**{name: drawn})
+        draws = {}
+        for channel, specs in self.disturbance_specs.items():
+            channel_keys = jax.random.split(jax.random.fold_in(key_disturbances, CHANNEL_INDEX[channel]), len(specs))
+            draws[channel] = tuple(
+                disturbances_lib.initial_state(spec, p, k, self.num_steps)
+                for spec, p, k in zip(specs, params.disturbances[channel], channel_keys, strict=True)
+            )
+        state = EnvState(x=x0, step=jnp.zeros((), jnp.int32), key=key, physics=physics, disturbances=draws)
+        return self._noisy_observation(state, params, key_obs), state
+
+    def step(self, state: EnvState, action, params: EnvParams, adversary=None) -> StepOutput:
         """Advance one control step.
 
         Args:
             state: ``EnvState`` of one copy. action: (nu,) in this env's ``action_mode``. params: ``EnvParams``.
+            adversary: optional input (dim of the adversary channel,) in [-1, 1] (clipped), scaled by
+                ``params.adversary_scale`` and added to that channel; only for envs made with ``adversary``.
 
         Returns:
             ``StepOutput`` with ``info`` holding ``mse`` (weighted squared tracking error of ``x_{k+1}``),
             ``quadratic_cost`` (``c`` above), ``out_of_bounds``, ``goal_reached``, ``nonfinite`` (the
             integration produced a non-finite state: the episode ends and the last finite state is kept),
-            ``step`` (k + 1), ``u_cmd`` and ``u`` (commanded and applied input, N).
+            ``step`` (k + 1), ``u_cmd`` and ``u`` (commanded and applied input, N), ``f_ext`` (the external
+            force, N), ``constraint_values`` (all rows ``g``, in option order), ``constraint_violation`` (any
+            row violated).
         """
+        if adversary is not None and self.adversary_channel is None:
+            raise ValueError(
+                "adversary: this env was made without an adversary channel; pass "
+                "adversary={'channel': ..., 'scale': ...} to make"
+            )
+        key, key_action, key_dynamics, key_obs = jax.random.split(state.key, 4)
+        extra = {channel: 0.0 for channel in disturbances_lib.CHANNELS}
+        if adversary is not None:
+            extra[self.adversary_channel] = params.adversary_scale * jnp.clip(adversary, -1.0, 1.0)
+
         u_cmd = self.action_to_input(action, params)
         u_low, u_high = self.input_bounds(state.physics)
-        u = jnp.clip(u_cmd, u_low, u_high)
-        x_next = self.integrate(state.x, u, state.physics)
+        u_disturbed = u_cmd + self._disturb("action", state, params, key_action, state.step) + extra["action"]
+        u = jnp.clip(u_disturbed, u_low, u_high)
+        f_ext = self._disturb("dynamics", state, params, key_dynamics, state.step) + extra["dynamics"]
+        x_next = self.integrate(state.x, u, state.physics, f_ext)
         finite = jnp.all(jnp.isfinite(x_next))
         x_next = jnp.where(finite, x_next, state.x)
         step = state.step + 1
@@ -351,11 +455,23 @@ class Env:
             if self.task == "stabilization"
             else jnp.zeros((), bool)
         )
+        if self.constraint_specs:
+            constraint_values = constraints_lib.evaluate_all(
+                self.constraint_specs, params.constraints, x_next, u_cmd, jax_backend
+            )
+            violation = jnp.any(constraints_lib.violated(self.constraint_specs, params.constraints, constraint_values))
+        else:
+            constraint_values = jnp.zeros(0, x_next.dtype)
+            violation = jnp.zeros((), bool)
+        cost = violation.astype(x_next.dtype)
+
         terminated = ~finite
         if self.done_on_out_of_bounds:
             terminated = terminated | out_of_bounds
         if self.done_on_goal:
             terminated = terminated | goal_reached
+        if self.done_on_violation:
+            terminated = terminated | violation
         truncated = (step >= self.num_steps) & ~terminated
 
         if self.reward_type == "quadratic":
@@ -364,8 +480,9 @@ class Env:
             reward = jnp.exp(-quadratic_cost)
         else:
             reward = jnp.where(out_of_bounds, 0.0, 1.0).astype(x_next.dtype)
+        reward = reward - params.violation_penalty * cost
 
-        next_state = state.replace(x=x_next, step=step)
+        next_state = state.replace(x=x_next, step=step, key=key)
         info = {
             "mse": jnp.sum(params.mse_weight * error**2),
             "quadratic_cost": quadratic_cost,
@@ -375,12 +492,15 @@ class Env:
             "step": step,
             "u_cmd": u_cmd,
             "u": u,
+            "f_ext": f_ext,
+            "constraint_values": constraint_values,
+            "constraint_violation": violation,
         }
         return StepOutput(
-            obs=self.observe(next_state, params),
+            obs=self._noisy_observation(next_state, params, key_obs),
             state=next_state,
             reward=reward,
-            cost=jnp.zeros((), x_next.dtype),
+            cost=cost,
             terminated=terminated,
             truncated=truncated,
             info=info,
@@ -410,7 +530,13 @@ def make(system: str, task: str = "stabilization", **options) -> Env:
             trajectory (tracking: dict with ``shape`` (circle, sinusoid, figure8, square; default circle),
             ``num_cycles`` (default 1), ``plane``, ``offset`` (2,), ``scale``; defaults per system),
             physics (dict of ``Params`` fields to override), Q (nx,) or (nx, nx), R (nu,) or (nu, nu),
-            goal (nx,), goal_tolerance, init_low (nx,), init_high (nx,), mse_weight (nx,).
+            goal (nx,), goal_tolerance, mse_weight (nx,),
+            init_state (a fixed (nx,) state or a distribution, see ``scg_jax.randomization``; default the
+            system's uniform range), physics_randomization (``{field: distribution}``, drawn at every reset),
+            constraints (list of constraint mappings, see ``scg_jax.constraints``), done_on_violation
+            (default False), violation_penalty (>= 0, subtracted from the reward at a violating step),
+            disturbances (``{channel: [disturbance mappings]}``, see ``scg_jax.disturbances``), adversary
+            (``{"channel": action|observation|dynamics, "scale": number or (dim,)}``).
 
     Raises:
         ValueError: naming the option and the allowed values for anything unknown or inconsistent.
@@ -481,10 +607,76 @@ def make(system: str, task: str = "stabilization", **options) -> Env:
         trajectory = {"scale": spec.default_scale, "offset": np.asarray(spec.default_offset), "num_cycles": 1.0}
 
     nx, nu = spec.nx, spec.nu
-    init_low = _vector("init_low", spec.init_low if opts["init_low"] is None else opts["init_low"], nx)
-    init_high = _vector("init_high", spec.init_high if opts["init_high"] is None else opts["init_high"], nx)
-    if np.any(init_low > init_high):
-        raise ValueError(f"init_low: must not exceed init_high, got {init_low.tolist()} > {init_high.tolist()}")
+    init_raw = opts["init_state"]
+    if init_raw is None:
+        init_raw = {"type": "uniform", "low": spec.init_low.tolist(), "high": spec.init_high.tolist()}
+    init_spec, init_values = randomization.parse_distribution(
+        "init_state", init_raw, (nx,), positive=False, allow_relative=False
+    )
+    randomized = opts["physics_randomization"] or {}
+    if not isinstance(randomized, dict):
+        raise ValueError(
+            f"physics_randomization: expected a mapping of parameter names to distributions, got {randomized!r}"
+        )
+    physics_specs, physics_values = {}, {}
+    for name, raw in randomized.items():
+        if name not in fields:
+            raise ValueError(
+                f"physics_randomization.{name}: unknown parameter of {spec.name}; allowed are {', '.join(fields)}"
+            )
+        physics_specs[name], physics_values[name] = randomization.parse_distribution(
+            f"physics_randomization.{name}", raw, (), positive=True, allow_relative=True
+        )
+
+    state_bounds = (spec.state_low, spec.state_high)
+    input_bounds = tuple(np.asarray(b, dtype=float) for b in spec.input_bounds(physics))
+    raw_constraints = opts["constraints"] or []
+    if not isinstance(raw_constraints, list | tuple):
+        raise ValueError(f"constraints: expected a list of constraint mappings, got {raw_constraints!r}")
+    parsed = [
+        constraints_lib.parse_constraint(f"constraints[{i}]", raw, spec, state_bounds, input_bounds)
+        for i, raw in enumerate(raw_constraints)
+    ]
+    constraint_specs = tuple(p[0] for p in parsed)
+    penalty = float(opts["violation_penalty"])
+    if not (np.isfinite(penalty) and penalty >= 0):
+        raise ValueError(
+            f"violation_penalty: must be a non-negative number (it is subtracted from the reward), "
+            f"got {opts['violation_penalty']!r}"
+        )
+
+    num_steps = round(steps)
+    channel_dims = {"action": nu, "observation": nx, "dynamics": spec.f_ext_dim}
+    raw_disturbances = opts["disturbances"] or {}
+    if not isinstance(raw_disturbances, dict):
+        raise ValueError(f"disturbances: expected a mapping of channel to a list, got {raw_disturbances!r}")
+    disturbance_specs, disturbance_values = {}, {}
+    for channel, entries in raw_disturbances.items():
+        _choice("disturbances", channel, disturbances_lib.CHANNELS)
+        if not isinstance(entries, list | tuple):
+            raise ValueError(f"disturbances.{channel}: expected a list of disturbance mappings, got {entries!r}")
+        if not entries:
+            continue
+        items = [
+            disturbances_lib.parse_disturbance(
+                f"disturbances.{channel}[{i}]", raw, channel, channel_dims[channel], num_steps
+            )
+            for i, raw in enumerate(entries)
+        ]
+        disturbance_specs[channel] = tuple(item[0] for item in items)
+        disturbance_values[channel] = [item[1] for item in items]
+
+    adversary = opts["adversary"]
+    adversary_channel, adversary_scale = None, np.zeros(0)
+    if adversary is not None:
+        if not isinstance(adversary, dict) or set(adversary) - {"channel", "scale"}:
+            raise ValueError(f"adversary: expected a mapping with keys channel, scale, got {adversary!r}")
+        adversary_channel = adversary.get("channel")
+        _choice("adversary.channel", adversary_channel, disturbances_lib.CHANNELS)
+        adversary_scale = disturbances_lib._vector(
+            "adversary.scale", adversary.get("scale", 1.0), channel_dims[adversary_channel]
+        )
+
     tolerance = float(opts["goal_tolerance"])
     if not tolerance > 0:
         raise ValueError(f"goal_tolerance: must be positive, got {opts['goal_tolerance']!r}")
@@ -494,10 +686,14 @@ def make(system: str, task: str = "stabilization", **options) -> Env:
         "R": _weight("R", spec.r_diag if opts["R"] is None else opts["R"], nu),
         "goal": _vector("goal", spec.goal if opts["goal"] is None else opts["goal"], nx),
         "goal_tolerance": tolerance,
-        "init_low": init_low,
-        "init_high": init_high,
+        "init_state": init_values,
+        "physics_randomization": physics_values,
         "trajectory": trajectory,
         "mse_weight": _vector("mse_weight", spec.mse_weight if opts["mse_weight"] is None else opts["mse_weight"], nx),
+        "constraints": [p[1] for p in parsed],
+        "violation_penalty": penalty,
+        "disturbances": disturbance_values,
+        "adversary_scale": adversary_scale,
     }
     return Env(
         system=spec,
@@ -513,5 +709,11 @@ def make(system: str, task: str = "stabilization", **options) -> Env:
         done_on_goal=bool(opts["done_on_goal"]),
         trajectory_shape=shape,
         trajectory_plane=plane,
+        done_on_violation=bool(opts["done_on_violation"]),
+        init_state_spec=init_spec,
+        physics_randomization_specs=physics_specs,
+        constraint_specs=constraint_specs,
+        disturbance_specs=disturbance_specs,
+        adversary_channel=adversary_channel,
         _default_params_numpy=defaults,
     )

@@ -12,6 +12,7 @@ import casadi as cs
 import jax
 import numpy as np
 
+from scg_jax import constraints as constraints_lib
 from scg_jax.backends import casadi_backend
 from scg_jax.integrators import make_discrete_dynamics
 
@@ -46,6 +47,11 @@ class SymbolicModel:
         Q, R: the cost weights (numpy).
         x_ref: (num_steps + 1, nx) state reference; u_ref: (num_steps, nu) input reference.
         discretization: ``"env"`` or ``"rk4"``.
+        constraints: one ``g_i(x, u) -> rows`` CasADi function per env constraint (``g <= 0`` satisfied), built
+            from the same values as the env's (those in ``params``).
+        g: ``g(x, u)``, all constraint rows concatenated in order (0 rows when there are none).
+        constraint_specs: the env's static ``ConstraintSpec`` tuple (type, variable, active dims, strictness).
+        constraint_tolerances: tolerance of each constraint.
     """
 
     nx: int
@@ -63,6 +69,10 @@ class SymbolicModel:
     x_ref: np.ndarray
     u_ref: np.ndarray
     discretization: str
+    constraints: tuple = ()
+    g: cs.Function | None = None
+    constraint_specs: tuple = ()
+    constraint_tolerances: tuple = ()
 
     def linearize(self, x0, u0) -> Linearization:
         """Continuous and discrete Jacobians about ``(x0 (nx,), u0 (nu,))``."""
@@ -121,6 +131,15 @@ def build_symbolic_model(env, params, discretization: str = "env") -> SymbolicMo
         ["l", "l_x", "l_u", "l_xx", "l_uu", "l_xu"],
     )
 
+    constraint_functions, rows = [], []
+    for i, (spec, values) in enumerate(zip(env.constraint_specs, params.constraints, strict=True)):
+        numeric = jax.tree.map(lambda v: np.asarray(v, dtype=float), values)
+        g_i = constraints_lib.evaluate(spec, numeric, x, u, casadi_backend)
+        constraint_functions.append(cs.Function(f"g{i}", [x, u], [g_i], ["x", "u"], ["g"]))
+        rows.append(g_i)
+    g = cs.Function("g", [x, u], [cs.vertcat(*rows) if rows else cs.SX(0, 1)], ["x", "u"], ["g"])
+    tolerances = tuple(float(np.asarray(c.tolerance)) for c in params.constraints)
+
     x_ref, u_ref = jax.jit(env.reference)(params)
     return SymbolicModel(
         nx=nx,
@@ -138,4 +157,8 @@ def build_symbolic_model(env, params, discretization: str = "env") -> SymbolicMo
         x_ref=np.asarray(x_ref, dtype=float),
         u_ref=np.asarray(u_ref, dtype=float),
         discretization=discretization,
+        constraints=tuple(constraint_functions),
+        g=g,
+        constraint_specs=env.constraint_specs,
+        constraint_tolerances=tolerances,
     )

@@ -36,7 +36,8 @@ def test_same_key_same_trajectory_bitwise_and_different_keys_differ(envs):
     assert not np.allclose(np.asarray(a), np.asarray(c))
     x0 = jax.vmap(lambda k: env.reset(k, params)[1].x)(jax.random.split(jax.random.key(0), 16))
     assert len({tuple(np.asarray(row).round(7)) for row in x0}) == 16
-    assert np.all(np.asarray(x0) >= np.asarray(params.init_low)) and np.all(np.asarray(x0) <= np.asarray(params.init_high))
+    low, high = np.asarray(params.init_state.low), np.asarray(params.init_state.high)
+    assert np.all(np.asarray(x0) >= low) and np.all(np.asarray(x0) <= high)
 
 
 def test_vmap_over_eight_pole_lengths_gives_eight_trajectories_without_retracing(envs):
@@ -70,7 +71,7 @@ def test_vmap_over_eight_pole_lengths_gives_eight_trajectories_without_retracing
 
 
 def test_truncation_at_the_time_limit_and_no_termination_at_equilibrium():
-    env = scg_jax.make("cartpole", episode_len_sec=1.0, init_low=[0, 0, 0, 0], init_high=[0, 0, 0, 0])
+    env = scg_jax.make("cartpole", episode_len_sec=1.0, init_state=[0, 0, 0, 0])
     params = env.default_params
     _, state = env.reset(jax.random.key(0), params)
     step = jax.jit(env.step)
@@ -123,8 +124,9 @@ def test_normalized_actions_convert_both_ways(name):
 
 def test_rewards_match_a_hand_computation():
     for reward_type in ("quadratic", "exponential"):
-        env = scg_jax.make("quadrotor_2d", "tracking", reward_type=reward_type, Q=[1, 0.1, 2, 0.1, 0.5, 0.1],
-                           R=[3.0, 4.0])
+        env = scg_jax.make(
+            "quadrotor_2d", "tracking", reward_type=reward_type, Q=[1, 0.1, 2, 0.1, 0.5, 0.1], R=[3.0, 4.0]
+        )
         params = env.default_params
         _, state = env.reset(jax.random.key(3), params)
         u = jnp.array([0.12, 0.15])
@@ -139,7 +141,7 @@ def test_rewards_match_a_hand_computation():
 
 
 def test_upright_reward_counts_steps_inside_the_bounds():
-    env = scg_jax.make("cartpole", reward_type="upright", init_low=[0, 0, 1.5, 0], init_high=[0, 0, 1.5, 0])
+    env = scg_jax.make("cartpole", reward_type="upright", init_state=[0, 0, 1.5, 0])
     params = env.default_params
     _, state = env.reset(jax.random.key(0), params)
     rewards, ended = [], False
@@ -164,7 +166,7 @@ def test_observation_appends_the_next_reference_points_clamped_at_the_end():
 
 def test_goal_reached_ends_the_episode_when_asked():
     goal = [0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
-    env = scg_jax.make("quadrotor_2d", done_on_goal=True, init_low=goal, init_high=goal)
+    env = scg_jax.make("quadrotor_2d", done_on_goal=True, init_state=goal)
     params = env.default_params
     _, state = env.reset(jax.random.key(0), params)
     out = env.step(state, jnp.asarray(env.system.equilibrium_input(params.physics)), params)

@@ -40,6 +40,7 @@ def test_semi_implicit_euler_updates_velocities_first():
 
 
 def test_unknown_integrator_names_allowed_values():
-    with pytest.raises(ValueError, match="integrator: unknown value 'midpoint'; allowed values are " +
-                       ", ".join(INTEGRATORS)):
+    with pytest.raises(
+        ValueError, match="integrator: unknown value 'midpoint'; allowed values are " + ", ".join(INTEGRATORS)
+    ):
         get_integrator("midpoint")

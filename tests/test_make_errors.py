@@ -5,17 +5,30 @@ import pytest
 import scg_jax
 
 CASES = [
-    (("pendulum",), {}, r"system: unknown value 'pendulum'; allowed values are cartpole, quadrotor_1d, "
-                        r"quadrotor_2d, quadrotor_3d"),
+    (
+        ("pendulum",),
+        {},
+        r"system: unknown value 'pendulum'; allowed values are cartpole, quadrotor_1d, "
+        r"quadrotor_2d, quadrotor_3d",
+    ),
     (("cartpole", "swingup"), {}, r"task: unknown value 'swingup'; allowed values are stabilization, tracking"),
-    (("cartpole", "tracking"), {"trajectory": {"shape": "spiral"}},
-     r"trajectory.shape: unknown value 'spiral'; allowed values are circle, sinusoid, figure8, square"),
+    (
+        ("cartpole", "tracking"),
+        {"trajectory": {"shape": "spiral"}},
+        r"trajectory.shape: unknown value 'spiral'; allowed values are circle, sinusoid, figure8, square",
+    ),
     (("cartpole", "tracking"), {"trajectory": {"plane": "xx"}}, r"trajectory.plane: unknown value 'xx'"),
-    (("cartpole", "tracking"), {"trajectory": {"offset": [0.0, 1.0, 2.0]}},
-     r"trajectory.offset: expected 2 values, got shape \(3,\)"),
+    (
+        ("cartpole", "tracking"),
+        {"trajectory": {"offset": [0.0, 1.0, 2.0]}},
+        r"trajectory.offset: expected 2 values, got shape \(3,\)",
+    ),
     (("cartpole", "tracking"), {"trajectory": {"speed": 2}}, r"trajectory.speed: unknown key; allowed keys are"),
-    (("cartpole",), {"ctrl_freq": 15, "physics_freq": 1000},
-     r"physics_freq: must be a multiple of ctrl_freq \(15 Hz\), got 1000 Hz; allowed values are 15, 30, 45"),
+    (
+        ("cartpole",),
+        {"ctrl_freq": 15, "physics_freq": 1000},
+        r"physics_freq: must be a multiple of ctrl_freq \(15 Hz\), got 1000 Hz; allowed values are 15, 30, 45",
+    ),
     (("cartpole",), {"ctrl_freq": 0}, r"ctrl_freq: must be a positive integer"),
     (("cartpole",), {"episode_len_sec": 1.01}, r"episode_len_sec: must be positive and a whole number"),
     (("cartpole",), {"integrator": "midpoint"}, r"integrator: unknown value 'midpoint'; allowed values are euler"),
@@ -29,7 +42,11 @@ CASES = [
     (("quadrotor_1d",), {"goal": [1.0]}, r"goal: expected 2 values"),
     (("cartpole",), {"obs_goal_horizon": -1}, r"obs_goal_horizon: must be a non-negative integer"),
     (("cartpole", "tracking"), {"done_on_goal": True}, r"done_on_goal: only allowed with task 'stabilization'"),
-    (("cartpole",), {"init_low": [1, 0, 0, 0], "init_high": [0, 0, 0, 0]}, r"init_low: must not exceed init_high"),
+    (
+        ("cartpole",),
+        {"init_state": {"type": "uniform", "low": [1, 0, 0, 0], "high": [0, 0, 0, 0]}},
+        r"init_state.low: must not exceed high",
+    ),
 ]
 
 

@@ -47,7 +47,7 @@ def test_rollout_is_deterministic_and_does_not_retrace():
 
 
 def test_batched_params_sweep_over_copies():
-    env = scg_jax.make("quadrotor_1d", init_low=[1.0, 0.0], init_high=[1.0, 0.0])
+    env = scg_jax.make("quadrotor_1d", init_state=[1.0, 0.0])
 
     def hover_nominal(obs, state, params, key):
         return jnp.asarray(env.system.equilibrium_input(env.default_params.physics))
@@ -55,8 +55,7 @@ def test_batched_params_sweep_over_copies():
     base = env.default_params
     masses = jnp.array([0.024, 0.027, 0.030])
     sweep = jax.vmap(lambda m: base.replace(physics=base.physics.replace(mass=m)))(masses)
-    traj = scg_jax.rollout(env, sweep, hover_nominal, jax.random.key(0), num_envs=3, num_steps=10,
-                           batched_params=True)
+    traj = scg_jax.rollout(env, sweep, hover_nominal, jax.random.key(0), num_envs=3, num_steps=10, batched_params=True)
     z_dot = np.asarray(traj.final_state.x[:, 1])
     # Nominal hover thrust on a lighter (heavier) plant accelerates it up (down): a = T / m - g, exactly.
     expected = (0.027 * 9.8 / np.asarray(masses) - 9.8) * 10 * env.dt

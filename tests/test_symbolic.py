@@ -43,8 +43,7 @@ def test_rk4_discretisation_is_one_step_of_length_dt():
     k2 = f(x + dt / 2 * k1)
     k3 = f(x + dt / 2 * k2)
     k4 = f(x + dt * k3)
-    np.testing.assert_allclose(np.asarray(model.fd(x, u)).ravel(), x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4),
-                               rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(model.fd(x, u)).ravel(), x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4), rtol=1e-12)
     # With 50 RK4 substeps the env's own discretisation differs from one coarse step, but only slightly.
     fine = np.asarray(env.symbolic_model(params).fd(x, u)).ravel()
     assert 1e-9 < np.abs(fine - np.asarray(model.fd(x, u)).ravel()).max() < 1e-3

@@ -49,8 +49,9 @@ def test_goal_with_equilibrium_input_is_a_fixed_point(name):
     system = scg_jax.SYSTEMS[name]
     params = system.params_cls()
     with jax.enable_x64(True):
-        x_dot = system.dynamics(jnp.asarray(system.goal), jnp.asarray(system.equilibrium_input(params)), params,
-                                jax_backend)
+        x_dot = system.dynamics(
+            jnp.asarray(system.goal), jnp.asarray(system.equilibrium_input(params)), params, jax_backend
+        )
     np.testing.assert_allclose(np.asarray(x_dot), 0.0, atol=1e-12)
 
 
@@ -59,8 +60,9 @@ def test_quadrotor_3d_hover_is_a_fixed_point_at_any_yaw():
     x = quadrotor_3d.SYSTEM.goal.copy()
     x[8] = 1.234
     with jax.enable_x64(True):
-        x_dot = quadrotor_3d.dynamics(jnp.asarray(x), jnp.full(4, params.mass * params.gravity / 4), params,
-                                      jax_backend)
+        x_dot = quadrotor_3d.dynamics(
+            jnp.asarray(x), jnp.full(4, params.mass * params.gravity / 4), params, jax_backend
+        )
     np.testing.assert_allclose(np.asarray(x_dot), 0.0, atol=1e-12)
 
 
@@ -93,10 +95,12 @@ def test_cartpole_matches_the_lagrangian_mass_matrix_solve_with_external_force()
         force, fx, fz = rng.uniform(-10, 10), rng.normal(0, 0.5), rng.normal(0, 0.5)
         th, th_d = x[2], x[3]
         mass = np.array([[mc + mp, mp * l * np.cos(th)], [mp * l * np.cos(th), 4.0 / 3.0 * mp * l**2]])
-        tau = np.array([
-            force + fx + mp * l * th_d**2 * np.sin(th),
-            mp * g * l * np.sin(th) + l * (fx * np.cos(th) - fz * np.sin(th)),
-        ])
+        tau = np.array(
+            [
+                force + fx + mp * l * th_d**2 * np.sin(th),
+                mp * g * l * np.sin(th) + l * (fx * np.cos(th) - fz * np.sin(th)),
+            ]
+        )
         x_dd, th_dd = np.linalg.solve(mass, tau)
         with jax.enable_x64(True):
             x_dot = cartpole.dynamics(jnp.asarray(x), jnp.array([force]), params, jax_backend, jnp.array([fx, fz]))
@@ -115,8 +119,11 @@ def test_quadrotor_3d_reduces_to_2d_in_the_xz_plane():
         u3 = np.array([t1 / 2, t2 / 2, t2 / 2, t1 / 2])  # front pair f1 + f4, back pair f2 + f3
         with jax.enable_x64(True):
             d2 = np.asarray(quadrotor_2d.dynamics(jnp.asarray(x2), jnp.array([t1, t2]), params, jax_backend, f2))
-            d3 = np.asarray(quadrotor_3d.dynamics(jnp.asarray(x3), jnp.asarray(u3), params, jax_backend,
-                                                  jnp.array([f2[0], 0.0, f2[1]])))
+            d3 = np.asarray(
+                quadrotor_3d.dynamics(
+                    jnp.asarray(x3), jnp.asarray(u3), params, jax_backend, jnp.array([f2[0], 0.0, f2[1]])
+                )
+            )
         np.testing.assert_allclose(d3[[0, 1, 4, 5, 7, 10]], d2, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(d3[[2, 3, 6, 8, 9, 11]], 0.0, atol=1e-12)
 
@@ -126,8 +133,9 @@ def test_quadrotor_3d_yaw_moment_uses_km_over_kf():
     hover, delta = params.mass * params.gravity / 4, 0.001
     u = hover + np.array([-delta, delta, -delta, delta])
     with jax.enable_x64(True):
-        x_dot = np.asarray(quadrotor_3d.dynamics(jnp.asarray(quadrotor_3d.SYSTEM.goal), jnp.asarray(u), params,
-                                                 jax_backend))
+        x_dot = np.asarray(
+            quadrotor_3d.dynamics(jnp.asarray(quadrotor_3d.SYSTEM.goal), jnp.asarray(u), params, jax_backend)
+        )
     np.testing.assert_allclose(x_dot[11], params.km / params.kf * 4 * delta / params.izz, rtol=1e-12)
     np.testing.assert_allclose(np.delete(x_dot, 11), 0.0, atol=1e-12)
 

@@ -36,10 +36,10 @@ def test_square_has_constant_speed_per_side_and_visits_its_corners():
     np.testing.assert_allclose(np.linalg.norm(vel, axis=1), speed, rtol=1e-6)
     for side, direction in enumerate([(0, 1), (-1, 0), (0, -1), (1, 0)]):
         in_side = (times >= side * PERIOD / 4 + 1e-6) & (times < (side + 1) * PERIOD / 4 - 1e-6)
-        np.testing.assert_allclose(vel[in_side], np.tile(np.array(direction) * speed, (in_side.sum(), 1)),
-                                   atol=1e-6)
-    corners = np.asarray(jax.vmap(lambda t: trajectories.planar("square", t, PERIOD, scale)[0])(
-        jnp.array([0.0, 1.0, 2.0, 3.0, 4.0])))
+        np.testing.assert_allclose(vel[in_side], np.tile(np.array(direction) * speed, (in_side.sum(), 1)), atol=1e-6)
+    corners = np.asarray(
+        jax.vmap(lambda t: trajectories.planar("square", t, PERIOD, scale)[0])(jnp.array([0.0, 1.0, 2.0, 3.0, 4.0]))
+    )
     np.testing.assert_allclose(corners, [[0, 0], [0, 0.5], [-0.5, 0.5], [-0.5, 0], [0, 0]], atol=1e-6)
 
 
@@ -54,9 +54,13 @@ def test_figure8_and_circle_closed_forms():
 
 
 def test_env_reference_holds_one_point_per_control_step_plus_the_final_one():
-    env = scg_jax.make("quadrotor_2d", "tracking", ctrl_freq=20, episode_len_sec=3.0,
-                       trajectory={"shape": "figure8", "num_cycles": 2, "plane": "xz", "offset": [0.2, 1.0],
-                                   "scale": 0.6})
+    env = scg_jax.make(
+        "quadrotor_2d",
+        "tracking",
+        ctrl_freq=20,
+        episode_len_sec=3.0,
+        trajectory={"shape": "figure8", "num_cycles": 2, "plane": "xz", "offset": [0.2, 1.0], "scale": 0.6},
+    )
     x_ref, u_ref = env.reference(env.default_params)
     assert x_ref.shape == (61, 6) and u_ref.shape == (60, 2)
     # Point for point with the original's definition: t_k = k dt, period = episode length / cycles.
