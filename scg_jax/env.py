@@ -514,6 +514,31 @@ class Env:
         return build_symbolic_model(self, params, discretization)
 
 
+def prior_params(env: Env, params: EnvParams, scale: float = 1.5, fields=None) -> EnvParams:
+    """Params for a controller's prior model: the chosen physical parameters of ``params`` times ``scale``.
+
+    Args:
+        env: the environment. params: the true (nominal) ``EnvParams``. scale: factor, e.g. 1.5 for 150%.
+        fields: names of ``params.physics`` fields to scale; default ``env.system.inertial_fields`` (cart-pole:
+            cart mass, pole mass, pole half-length; quadrotors: mass and the moments of inertia in use).
+
+    Returns:
+        ``EnvParams`` equal to ``params`` except for the scaled physical parameters; pass it to
+        ``env.symbolic_model`` so the model mismatch is explicit.
+    """
+    names = env.system.inertial_fields if fields is None else tuple(fields)
+    allowed = [f.name for f in dataclasses.fields(params.physics)]
+    for name in names:
+        if name not in allowed:
+            raise ValueError(
+                f"fields: unknown parameter {name!r} of {env.system.name}; allowed are {', '.join(allowed)}"
+            )
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale: must be a positive number, got {scale!r}")
+    scaled = {name: getattr(params.physics, name) * scale for name in names}
+    return params.replace(physics=params.physics.replace(**scaled))
+
+
 def make(system: str, task: str = "stabilization", **options) -> Env:
     """Build an environment.
 

@@ -39,6 +39,7 @@ class System:
         action_to_input: ``action_to_input(action, params) -> u``, normalised RL action to physical input.
         input_to_action: the inverse of ``action_to_input``.
         validate_params: raises ValueError naming the field when a parameter value is not physical.
+        inertial_fields: the ``Params`` fields a prior model scales by default (masses, lengths, inertias).
     """
 
     name: str
@@ -65,6 +66,7 @@ class System:
     action_to_input: Callable[[Any, Any], Any]
     input_to_action: Callable[[Any, Any], Any]
     validate_params: Callable[[Any], None]
+    inertial_fields: tuple[str, ...]
 
     @property
     def nx(self) -> int:

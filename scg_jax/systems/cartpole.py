@@ -134,4 +134,5 @@ SYSTEM = System(
     action_to_input=action_to_input,
     input_to_action=input_to_action,
     validate_params=validate_params,
+    inertial_fields=("cart_mass", "pole_mass", "pole_half_length"),
 )

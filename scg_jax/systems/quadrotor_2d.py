@@ -85,4 +85,5 @@ SYSTEM = System(
     action_to_input=_thrust.action_to_input,
     input_to_action=_thrust.input_to_action,
     validate_params=lambda params: cf.validate_params(params, "quadrotor_2d"),
+    inertial_fields=("mass", "iyy"),
 )
