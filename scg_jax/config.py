@@ -1,0 +1,763 @@
+"""Typed configuration files: one YAML file describes an environment, ``make_from_config`` builds it.
+
+Layout (every key of ``env`` but ``system`` and ``task`` is an option of ``scg_jax.make``, same name, same
+meaning, same default)::
+
+    env:
+      system: cartpole            # cartpole, quadrotor_1d, quadrotor_2d, quadrotor_3d
+      task: stabilization         # or tracking
+      ctrl_freq: 15               # Hz
+      physics_freq: 750           # Hz, a multiple of ctrl_freq
+      trajectory: {shape: figure8, num_cycles: 1, plane: xz, offset: [0.0, 1.0], scale: 0.75}  # tracking only
+      init_state: {type: uniform, low: [...], high: [...]}          # or a fixed state [...]
+      physics_randomization:
+        pole_mass: {type: uniform, low: 0.9, high: 1.1, relative: true}
+      constraints:
+        - {type: default, on: state}
+        - {type: abs_bound, on: input, bound: 5.0}
+      disturbances:
+        observation: [{type: white_noise, std: 0.001}]
+      adversary: {channel: action, scale: 1.0}
+
+A key left out (or ``null`` where the default is ``null``) means ``make``'s default; the defaults of
+``EnvConfig`` are read from ``scg_jax.env._OPTION_DEFAULTS`` so the two cannot disagree.
+
+Checking happens in two places, and every message starts with the dotted path of the field:
+
+- loading (``Config.from_dict``, ``load_config``, and constructing the dataclasses directly) checks keys,
+  types, structural shapes (e.g. ``trajectory.offset`` has 2 numbers, a matrix has equal-length rows) and the
+  fixed sets of names (system, task, integrator, constraint and disturbance types, channels, ...);
+  ``env.ctrl_freq: expected an integer, got 'fast'``, ``env.trajctory: unknown key; allowed keys are ...``;
+- ``make_from_config`` checks everything that depends on values or on the system (vector lengths, positive
+  masses, frequencies, per-type keys) through ``make`` itself and prefixes its messages with ``env.``:
+  ``env.physics_freq: must be a multiple of ctrl_freq (15 Hz), got 1000 Hz; allowed values are 15, 30, ...``.
+
+YAML is read with YAML 1.2 scalars: only ``true``/``false`` are booleans (so the constraint key ``on`` stays
+a string, where YAML 1.1 reads it as ``true``) and ``1e-3`` is a number (YAML 1.1 reads it as a string).
+Duplicate keys are an error.
+"""
+
+from __future__ import annotations
+
+import contextvars
+import copy
+import dataclasses
+import difflib
+import inspect
+import numbers
+import os
+import re
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+import yaml
+
+from scg_jax import constraints as constraints_lib
+from scg_jax import disturbances as disturbances_lib
+from scg_jax import randomization, trajectories
+from scg_jax.env import _OPTION_DEFAULTS, ACTION_MODES, REWARD_TYPES, TASKS, Env, EnvParams, make
+from scg_jax.integrators import INTEGRATORS
+from scg_jax.systems import SYSTEMS
+
+__all__ = [
+    "AdversaryConfig",
+    "Config",
+    "ConfigError",
+    "ConstraintConfig",
+    "DisturbanceConfig",
+    "DistributionConfig",
+    "EnvConfig",
+    "TrajectoryConfig",
+    "dump_config",
+    "load_config",
+    "make_from_config",
+]
+
+
+class ConfigError(ValueError):
+    """A configuration problem; ``path`` is the dotted path of the field (``env.constraints[1].type``)."""
+
+    def __init__(self, path: str, reason: str):
+        self.path = path
+        self.reason = reason
+        super().__init__(f"{path}: {reason}" if path else reason)
+
+
+# --------------------------------------------------------------------------------------------- YAML
+_BOOL_TAG = "tag:yaml.org,2002:bool"
+_FLOAT_TAG = "tag:yaml.org,2002:float"
+_FLOAT_RE = re.compile(
+    r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+    |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+    |[-+]?\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+    |[-+]?\.(?:inf|Inf|INF)
+    |\.(?:nan|NaN|NAN))$""",
+    re.VERBOSE,
+)
+
+
+class _Loader(yaml.SafeLoader):
+    """``SafeLoader`` with YAML 1.2 booleans and floats, rejecting duplicate keys."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            self.flatten_mapping(node)
+            seen = set()
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    duplicate = key in seen
+                except TypeError:  # an unhashable key: the base class reports it
+                    continue
+                if duplicate:
+                    raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}", key_node.start_mark)
+                seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
+_Loader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers if tag not in (_BOOL_TAG, _FLOAT_TAG)]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+_Loader.add_implicit_resolver(_BOOL_TAG, re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF"))
+_Loader.add_implicit_resolver(_FLOAT_TAG, _FLOAT_RE, list("-+0123456789."))
+
+
+def _yaml_load(text: str, where: str):
+    try:
+        return yaml.load(text, Loader=_Loader)  # a SafeLoader subclass
+    except yaml.YAMLError as err:
+        raise ConfigError("", f"{where}: invalid YAML: {err}") from None
+
+
+# --------------------------------------------------------------------------------------------- converters
+# A converter ``conv(value, path) -> normalised value`` checks one field and returns it with lists as tuples
+# and nested sections as their dataclasses; it accepts its own output, so normalising twice is harmless.
+_Converter = Callable[[Any, str], Any]
+
+
+def _show(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _join(path: str, key) -> str:
+    return f"{path}.{key}" if path else str(key)
+
+
+def _unwrap(value):
+    """numpy arrays and scalars to Python lists and numbers (so configs built in Python may use them)."""
+    if isinstance(value, np.ndarray | np.generic):
+        return value.tolist()
+    return value
+
+
+def _is_sequence(value) -> bool:
+    return isinstance(value, list | tuple)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _integer(value, path):
+    value = _unwrap(value)
+    if isinstance(value, numbers.Integral) and not isinstance(value, bool):
+        return int(value)
+    raise ConfigError(path, f"expected an integer, got {_show(value)}")
+
+
+def _number(value, path):
+    value = _unwrap(value)
+    if _is_number(value):
+        return float(value)
+    if isinstance(value, str) and _FLOAT_RE.match(value):  # e.g. "1e-3" from a YAML 1.1 reader (yaml.safe_load)
+        return float(value.replace("_", "").lower().replace(".inf", "inf").replace(".nan", "nan"))
+    raise ConfigError(path, f"expected a number, got {_show(value)}")
+
+
+def _boolean(value, path):
+    value = _unwrap(value)
+    if isinstance(value, bool):
+        return value
+    raise ConfigError(path, f"expected true or false, got {_show(value)}")
+
+
+def _string(value, path):
+    if isinstance(value, str):
+        return value
+    raise ConfigError(path, f"expected a string, got {_show(value)}")
+
+
+def _choice(allowed) -> _Converter:
+    allowed = tuple(allowed)
+
+    def conv(value, path):
+        if isinstance(value, str) and value in allowed:
+            return value
+        if isinstance(value, str):
+            raise ConfigError(path, f"unknown value {value!r}; allowed values are {', '.join(allowed)}")
+        raise ConfigError(path, f"expected one of {', '.join(allowed)}, got {_show(value)}")
+
+    conv.allowed = allowed
+    return conv
+
+
+def _numbers(length: int | None = None) -> _Converter:
+    """A list of numbers (of ``length`` numbers when given)."""
+    what = "a list of numbers" if length is None else f"a list of {length} numbers"
+
+    def conv(value, path):
+        value = _unwrap(value)
+        if not _is_sequence(value):
+            raise ConfigError(path, f"expected {what}, got {_show(value)}")
+        if length is not None and len(value) != length:
+            raise ConfigError(path, f"expected {what}, got {len(value)}: {_show(list(value))}")
+        return tuple(_number(item, f"{path}[{i}]") for i, item in enumerate(value))
+
+    return conv
+
+
+_vector = _numbers()
+
+
+def _number_or_numbers(value, path):
+    value = _unwrap(value)
+    if _is_number(value):
+        return float(value)
+    if _is_sequence(value):
+        return _vector(value, path)
+    raise ConfigError(path, f"expected a number or a list of numbers, got {_show(value)}")
+
+
+def _rows(value, path):
+    """A non-empty list of equal-length lists of numbers (a matrix)."""
+    value = _unwrap(value)
+    if not (_is_sequence(value) and value and all(_is_sequence(_unwrap(row)) for row in value)):
+        raise ConfigError(path, f"expected a matrix (a list of equal-length lists of numbers), got {_show(value)}")
+    rows = tuple(_vector(row, f"{path}[{i}]") for i, row in enumerate(value))
+    lengths = sorted({len(row) for row in rows})
+    if len(lengths) > 1:
+        raise ConfigError(
+            path, f"expected a matrix (a list of equal-length lists of numbers), got rows of lengths {lengths}"
+        )
+    return rows
+
+
+def _vector_or_matrix(value, path):
+    """A list of numbers or a list of equal-length lists of numbers."""
+    value = _unwrap(value)
+    if _is_sequence(value) and value and _is_sequence(_unwrap(value[0])):
+        return _rows(value, path)
+    if _is_sequence(value):
+        return _vector(value, path)
+    raise ConfigError(
+        path, f"expected a list of numbers or a list of equal-length lists of numbers, got {_show(value)}"
+    )
+
+
+def _integers(value, path):
+    value = _unwrap(value)
+    if not _is_sequence(value):
+        raise ConfigError(path, f"expected a list of integers, got {_show(value)}")
+    return tuple(_integer(item, f"{path}[{i}]") for i, item in enumerate(value))
+
+
+def _start_step(value, path):
+    if value == "random":
+        return value
+    value = _unwrap(value)
+    if isinstance(value, numbers.Integral) and not isinstance(value, bool):
+        return int(value)
+    raise ConfigError(path, f"expected a non-negative integer or 'random', got {_show(value)}")
+
+
+def _optional(conv: _Converter) -> _Converter:
+    def optional(value, path):
+        return None if value is None else conv(value, path)
+
+    optional.allowed = getattr(conv, "allowed", None)
+    return optional
+
+
+def _list_of(conv: _Converter, what: str) -> _Converter:
+    def list_of(value, path):
+        if not _is_sequence(value):
+            raise ConfigError(path, f"expected a list of {what}, got {_show(value)}")
+        return tuple(conv(item, f"{path}[{i}]") for i, item in enumerate(value))
+
+    return list_of
+
+
+def _mapping_of(value_conv: _Converter, what: str, keys: tuple[str, ...] | None = None) -> _Converter:
+    """A mapping from names (``keys`` when given, else any string) to values checked by ``value_conv``."""
+
+    def mapping_of(value, path):
+        if not isinstance(value, Mapping):
+            raise ConfigError(path, f"expected a mapping of {what}, got {_show(value)}")
+        result = {}
+        for key, item in value.items():
+            if not isinstance(key, str):
+                raise ConfigError(path, f"expected a mapping of {what} with string keys, got the key {_show(key)}")
+            if keys is not None and key not in keys:
+                raise ConfigError(_join(path, key), f"unknown key; allowed keys are {', '.join(keys)}")
+            result[key] = value_conv(item, _join(path, key))
+        return result
+
+    return mapping_of
+
+
+def _section(cls) -> _Converter:
+    def section(value, path):
+        return cls.from_dict(value, path)
+
+    return section
+
+
+def _distribution(value, path):
+    """A distribution mapping, or a fixed value (a number or a list of numbers)."""
+    if isinstance(value, DistributionConfig | Mapping):
+        return DistributionConfig.from_dict(value, path)
+    value = _unwrap(value)
+    if _is_number(value) or _is_sequence(value):
+        return _number_or_numbers(value, path)
+    raise ConfigError(
+        path,
+        f"expected a distribution (a mapping with type: {', '.join(randomization.DISTRIBUTIONS)}), "
+        f"a number or a list of numbers, got {_show(value)}",
+    )
+
+
+def _plain(value):
+    """Plain YAML data: sections to dicts (``None`` fields left out), tuples to lists."""
+    if isinstance(value, _Section):
+        return value.to_dict()
+    if isinstance(value, Mapping):
+        return {key: _plain(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(item) for item in value]
+    return _unwrap(value)
+
+
+# --------------------------------------------------------------------------------------------- sections
+# The path of the section being built by ``from_dict`` (read by ``__post_init__`` for its messages).
+_BUILD_PATH: contextvars.ContextVar[str | None] = contextvars.ContextVar("scg_jax_config_path", default=None)
+
+
+def _field(conv: _Converter, default=dataclasses.MISSING):
+    return dataclasses.field(default=default, metadata={"conv": conv})
+
+
+class _Section:
+    """Checked construction (``__post_init__``), ``from_dict`` with unknown-key detection, ``to_dict``."""
+
+    _name: ClassVar[str] = ""
+
+    def __post_init__(self):
+        path = _BUILD_PATH.get()
+        path = self._name if path is None else path
+        for field in dataclasses.fields(self):
+            value = field.metadata["conv"](getattr(self, field.name), _join(path, field.name))
+            object.__setattr__(self, field.name, value)
+        self._check(path)
+
+    def _check(self, path: str) -> None:
+        """Checks across fields; overridden by sections that need them."""
+
+    @classmethod
+    def keys(cls) -> tuple[str, ...]:
+        return tuple(field.name for field in dataclasses.fields(cls))
+
+    @classmethod
+    def from_dict(cls, data, path: str | None = None):
+        """Build from a mapping (e.g. parsed YAML), checking keys and types; ``path`` prefixes messages."""
+        path = cls._name if path is None else path
+        if isinstance(data, cls):
+            return data
+        names = cls.keys()
+        if not isinstance(data, Mapping):
+            raise ConfigError(path, f"expected a mapping with keys {', '.join(names)}, got {_show(data)}")
+        kwargs = {}
+        for key, value in data.items():
+            if key is True and "on" in names:  # ``on:`` read by a YAML 1.1 parser (plain yaml.safe_load)
+                key = "on"
+            if key not in names:
+                close = difflib.get_close_matches(str(key), names, n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                raise ConfigError(_join(path, key), f"unknown key; allowed keys are {', '.join(names)}{hint}")
+            kwargs[key] = value
+        for field in dataclasses.fields(cls):
+            if field.name not in kwargs and field.default is dataclasses.MISSING:
+                allowed = getattr(field.metadata["conv"], "allowed", None)
+                extra = f"; allowed values are {', '.join(allowed)}" if allowed else ""
+                raise ConfigError(_join(path, field.name), f"required{extra}")
+        token = _BUILD_PATH.set(path)
+        try:
+            return cls(**kwargs)
+        finally:
+            _BUILD_PATH.reset(token)
+
+    def to_dict(self) -> dict:
+        """Plain data (dicts, lists, numbers, strings) that ``from_dict`` and YAML accept; ``None`` fields are
+        left out."""
+        result = {}
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if value is not None:
+                result[field.name] = _plain(value)
+        return result
+
+
+@dataclasses.dataclass(frozen=True)
+class TrajectoryConfig(_Section):
+    """Tracking reference (``make``'s ``trajectory``); a field left ``None`` takes the system's default."""
+
+    _name: ClassVar[str] = "trajectory"
+
+    shape: str | None = _field(_optional(_choice(trajectories.SHAPES)), None)
+    num_cycles: float | None = _field(_optional(_number), None)
+    plane: str | None = _field(_optional(_string), None)
+    offset: tuple[float, float] | None = _field(_optional(_numbers(2)), None)
+    scale: float | None = _field(_optional(_number), None)
+
+
+@dataclasses.dataclass(frozen=True)
+class DistributionConfig(_Section):
+    """A distribution of ``scg_jax.randomization``: ``uniform`` (low, high), ``normal`` (mean, std, optional
+    truncation low, high) or ``choice`` (values); ``relative`` for physical parameters only."""
+
+    _name: ClassVar[str] = "distribution"
+
+    type: str = _field(_choice(randomization.DISTRIBUTIONS))
+    low: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+    high: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+    mean: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+    std: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+    values: tuple | None = _field(_optional(_vector_or_matrix), None)
+    relative: bool | None = _field(_optional(_boolean), None)
+
+
+@dataclasses.dataclass(frozen=True)
+class ConstraintConfig(_Section):
+    """A constraint of ``scg_jax.constraints``; which keys a type takes is checked by ``make`` (the keys a type
+    requires are checked here)."""
+
+    _name: ClassVar[str] = "constraint"
+
+    type: str = _field(_choice(constraints_lib.CONSTRAINT_TYPES))
+    on: str | None = _field(_optional(_choice(constraints_lib.CONSTRAINT_VARIABLES)), None)
+    active_dims: tuple[int, ...] | None = _field(_optional(_integers), None)
+    strict: bool | None = _field(_optional(_boolean), None)
+    tolerance: float | None = _field(_optional(_number), None)
+    low: tuple[float, ...] | None = _field(_optional(_vector), None)
+    high: tuple[float, ...] | None = _field(_optional(_vector), None)
+    bound: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+    A: tuple[tuple[float, ...], ...] | None = _field(_optional(_rows), None)
+    b: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+    P: tuple[tuple[float, ...], ...] | None = _field(_optional(_rows), None)
+
+    def _check(self, path: str) -> None:
+        for key in constraints_lib._KEYS[self.type]:
+            if getattr(self, key) is None:
+                raise ConfigError(_join(path, key), f"required for a {self.type} constraint")
+
+
+@dataclasses.dataclass(frozen=True)
+class DisturbanceConfig(_Section):
+    """A disturbance of ``scg_jax.disturbances``; which keys a type takes and requires is checked by ``make``."""
+
+    _name: ClassVar[str] = "disturbance"
+
+    type: str = _field(_choice(disturbances_lib.DISTURBANCE_TYPES))
+    mask: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+    std: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+    low: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+    high: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+    magnitude: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+    start_step: int | str | None = _field(_optional(_start_step), None)
+    duration: int | None = _field(_optional(_integer), None)
+    decay: float | None = _field(_optional(_number), None)
+    scale: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+    frequency: float | None = _field(_optional(_number), None)
+
+    def _check(self, path: str) -> None:
+        if self.start_step == "random" and self.type != "impulse":
+            raise ConfigError(
+                _join(path, "start_step"),
+                f"'random' is only allowed for an impulse disturbance; expected a non-negative integer for a "
+                f"{self.type} disturbance",
+            )
+
+
+@dataclasses.dataclass(frozen=True)
+class AdversaryConfig(_Section):
+    """The adversary input channel and its scale (``make``'s ``adversary``)."""
+
+    _name: ClassVar[str] = "adversary"
+
+    channel: str = _field(_choice(disturbances_lib.CHANNELS))
+    scale: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+
+
+def _option(name: str, conv: _Converter):
+    """A field for ``make`` option ``name`` with ``make``'s default (``None`` allowed where that is the default)."""
+    default = _OPTION_DEFAULTS[name]
+    return _field(_optional(conv) if default is None else conv, default)
+
+
+_TASK_DEFAULT = inspect.signature(make).parameters["task"].default
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig(_Section):
+    """The ``env`` section: ``make(system, task, **options)`` with one typed field per option.
+
+    ``None`` means ``make``'s default (e.g. the system's Q, R, goal, initial-state range). Sequences are
+    stored as tuples and mappings of sections as dicts.
+    """
+
+    _name: ClassVar[str] = "env"
+
+    system: str = _field(_choice(SYSTEMS))
+    task: str = _field(_choice(TASKS), _TASK_DEFAULT)
+    ctrl_freq: int = _option("ctrl_freq", _integer)
+    physics_freq: int = _option("physics_freq", _integer)
+    episode_len_sec: float = _option("episode_len_sec", _number)
+    integrator: str = _option("integrator", _choice(INTEGRATORS))
+    action_mode: str = _option("action_mode", _choice(ACTION_MODES))
+    reward_type: str = _option("reward_type", _choice(REWARD_TYPES))
+    obs_goal_horizon: int = _option("obs_goal_horizon", _integer)
+    done_on_out_of_bounds: bool = _option("done_on_out_of_bounds", _boolean)
+    done_on_goal: bool = _option("done_on_goal", _boolean)
+    trajectory: TrajectoryConfig | None = _option("trajectory", _section(TrajectoryConfig))
+    physics: dict[str, float] | None = _option("physics", _mapping_of(_number, "parameter names to numbers"))
+    Q: tuple | None = _option("Q", _vector_or_matrix)
+    R: tuple | None = _option("R", _vector_or_matrix)
+    goal: tuple[float, ...] | None = _option("goal", _vector)
+    goal_tolerance: float = _option("goal_tolerance", _number)
+    init_state: DistributionConfig | float | tuple[float, ...] | None = _option("init_state", _distribution)
+    physics_randomization: dict[str, DistributionConfig | float] | None = _option(
+        "physics_randomization", _mapping_of(_distribution, "parameter names to distributions")
+    )
+    mse_weight: tuple[float, ...] | None = _option("mse_weight", _vector)
+    constraints: tuple[ConstraintConfig, ...] | None = _option(
+        "constraints", _list_of(_section(ConstraintConfig), "constraint mappings")
+    )
+    done_on_violation: bool = _option("done_on_violation", _boolean)
+    violation_penalty: float = _option("violation_penalty", _number)
+    disturbances: dict[str, tuple[DisturbanceConfig, ...]] | None = _option(
+        "disturbances",
+        _mapping_of(
+            _list_of(_section(DisturbanceConfig), "disturbance mappings"),
+            "channels to lists of disturbances",
+            keys=disturbances_lib.CHANNELS,
+        ),
+    )
+    adversary: AdversaryConfig | None = _option("adversary", _section(AdversaryConfig))
+
+    @classmethod
+    def option_names(cls) -> tuple[str, ...]:
+        """The fields that are options of ``make`` (all but ``system`` and ``task``)."""
+        return tuple(name for name in cls.keys() if name not in ("system", "task"))
+
+    def make_options(self) -> dict:
+        """Keyword arguments for ``make`` as plain data, leaving out the ``None`` (default) ones."""
+        options = {}
+        for name in self.option_names():
+            value = getattr(self, name)
+            if value is not None:
+                options[name] = _plain(value)
+        return options
+
+
+@dataclasses.dataclass(frozen=True)
+class Config(_Section):
+    """A whole configuration file. Only ``env`` for now; other top-level keys are rejected."""
+
+    _name: ClassVar[str] = ""
+
+    env: EnvConfig = _field(_section(EnvConfig))
+
+
+# --------------------------------------------------------------------------------------------- overrides
+_PART_RE = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)((?:\[[0-9]+\])*)")
+_OVERRIDE_EXAMPLE = "e.g. env.ctrl_freq=15 or env.constraints[0].bound=0.5"
+
+
+def _format_path(tokens) -> str:
+    text = ""
+    for token in tokens:
+        text += f"[{token}]" if isinstance(token, int) else (f".{token}" if text else token)
+    return text
+
+
+def _parse_override(text) -> tuple[list, Any]:
+    if not isinstance(text, str) or "=" not in text:
+        raise ConfigError("", f"override {_show(text)}: expected dotted.key=value, {_OVERRIDE_EXAMPLE}")
+    key, _, raw = text.partition("=")
+    key = key.strip()
+    tokens: list = []
+    for part in key.split("."):
+        match = _PART_RE.fullmatch(part)
+        if match is None:
+            raise ConfigError(
+                "",
+                f"override {text!r}: malformed key {key!r}; expected names separated by dots, each optionally "
+                f"followed by [index], {_OVERRIDE_EXAMPLE}",
+            )
+        tokens.append(match.group(1))
+        tokens.extend(int(index) for index in re.findall(r"\[([0-9]+)\]", match.group(2)))
+    return tokens, _yaml_load(raw, f"override {text!r}")
+
+
+def _set_path(data: dict, tokens: list, value, text: str) -> None:
+    node = data
+    for i, token in enumerate(tokens):
+        last = i == len(tokens) - 1
+        where = _format_path(tokens[:i])
+        if isinstance(token, str):
+            if not isinstance(node, dict):
+                raise ConfigError(
+                    where, f"is {_show(node)}, not a mapping, so {token!r} cannot be set in it (override {text!r})"
+                )
+            if last:
+                node[token] = value
+            elif node.get(token) is None:
+                node[token] = {}
+        else:
+            if not isinstance(node, list):
+                raise ConfigError(
+                    where, f"is {_show(node)}, not a list, so [{token}] cannot be set in it (override {text!r})"
+                )
+            if token >= len(node):
+                raise ConfigError(
+                    _format_path(tokens[: i + 1]),
+                    f"index out of range; the list has {len(node)} entries (override {text!r})",
+                )
+            if last:
+                node[token] = value
+            elif node[token] is None:
+                node[token] = {}
+        if not last:
+            node = node[token]
+
+
+def _mutable_copy(data):
+    if isinstance(data, Mapping):
+        return {key: _mutable_copy(value) for key, value in data.items()}
+    if isinstance(data, list | tuple):
+        return [_mutable_copy(value) for value in data]
+    return copy.deepcopy(data)
+
+
+def _related(a: str, b: str) -> bool:
+    """Whether one dotted path is the other or lies inside it."""
+    if a == b:
+        return True
+    short, long = sorted((a, b), key=len)
+    return long.startswith(short) and long[len(short)] in ".["
+
+
+# --------------------------------------------------------------------------------------------- public API
+def _read(source) -> tuple[Any, str | None]:
+    if isinstance(source, Config):
+        return source.to_dict(), None
+    if isinstance(source, Mapping):
+        return source, None
+    if isinstance(source, str) and "\n" in source:
+        return _yaml_load(source, "config text"), None
+    if hasattr(source, "read"):
+        name = getattr(source, "name", None)
+        name = name if isinstance(name, str) else None
+        return _yaml_load(source.read(), name or "config stream"), name
+    if isinstance(source, str | os.PathLike):
+        path = Path(source)
+        return _yaml_load(path.read_text(), str(path)), str(path)
+    raise TypeError(
+        f"load_config: expected a path, YAML text, a file object, a mapping or a Config, got {type(source).__name__}"
+    )
+
+
+def load_config(source, overrides: Iterable[str] = ()) -> Config:
+    """Read a configuration and check it.
+
+    Args:
+        source: a path to a YAML file, YAML text (a string with a newline, e.g. ``dump_config``'s output), a
+            file object, a mapping of plain data, or a ``Config`` (to apply overrides to it).
+        overrides: ``"dotted.key=value"`` strings applied in order; the value is parsed as YAML, so
+            ``env.ctrl_freq=15``, ``env.trajectory.shape=figure8``,
+            ``env.disturbances.action=[{type: white_noise, std: 0.1}]`` and ``env.constraints[0].bound=0.5``
+            work. Missing mappings on the way are created; list indices must exist.
+
+    Returns:
+        the checked ``Config``.
+
+    Raises:
+        ConfigError (a ValueError): naming the dotted path of the field and what is allowed there (and the
+            override that set it, or the file).
+    """
+    if isinstance(overrides, str):
+        raise TypeError(f"overrides: expected a list of 'dotted.key=value' strings, got the string {overrides!r}")
+    data, name = _read(source)
+    data = _mutable_copy(data)
+    applied = []
+    for text in overrides:
+        tokens, value = _parse_override(text)
+        if data is None:
+            data = {}
+        if not isinstance(data, dict):
+            raise ConfigError("", f"expected a mapping at the top level to apply override {text!r}, got {_show(data)}")
+        _set_path(data, tokens, value, text)
+        applied.append((_format_path(tokens), text))
+    try:
+        return Config.from_dict(data)
+    except ConfigError as err:
+        for path, text in reversed(applied):
+            if _related(path, err.path):
+                raise ConfigError(err.path, f"{err.reason} (set by override {text!r})") from None
+        if name is not None:
+            raise ConfigError(err.path, f"{err.reason} (in {name})") from None
+        raise
+
+
+def dump_config(cfg: Config, path: str | os.PathLike | None = None) -> str:
+    """YAML text of ``cfg`` (written to ``path`` as well when given); ``load_config`` of it equals ``cfg``."""
+    if not isinstance(cfg, Config):
+        raise TypeError(f"dump_config: expected a Config, got {type(cfg).__name__}")
+    text = yaml.safe_dump(cfg.to_dict(), sort_keys=False, default_flow_style=None, width=120)
+    if path is not None:
+        Path(path).write_text(text)
+    return text
+
+
+_MESSAGE_PATH_RE = re.compile(r"([A-Za-z_][A-Za-z0-9_]*(?:\[[0-9]+\]|\.[A-Za-z_][A-Za-z0-9_]*)*): (.*)", re.DOTALL)
+
+
+def make_from_config(cfg: Config | EnvConfig) -> tuple[Env, EnvParams]:
+    """``make(cfg.env.system, cfg.env.task, **options)`` and its ``default_params``.
+
+    Raises:
+        ConfigError (a ValueError): ``make``'s message with the full dotted path, e.g.
+            ``env.constraints[1].type: unknown value ...`` or ``env.physics.pole_mass: must be positive ...``.
+    """
+    if isinstance(cfg, Config):
+        env_cfg = cfg.env
+    elif isinstance(cfg, EnvConfig):
+        env_cfg = cfg
+    else:
+        raise TypeError(f"make_from_config: expected a Config or an EnvConfig, got {type(cfg).__name__}")
+    try:
+        env = make(env_cfg.system, env_cfg.task, **env_cfg.make_options())
+    except ValueError as err:
+        message = str(err)
+        match = _MESSAGE_PATH_RE.fullmatch(message)
+        if match is None:
+            raise ConfigError("env", message) from err
+        path, reason = match.groups()
+        system_params = f"{env_cfg.system}.params."
+        if path.startswith(system_params):  # the system's own parameter checks name Params fields
+            path = "physics." + path[len(system_params) :]
+        raise ConfigError(f"env.{path}", reason) from err
+    return env, env.default_params
