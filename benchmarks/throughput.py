@@ -137,6 +137,19 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
+# The "safe" env of the same run: the default state and input constraints, and white noise on every disturbance
+# channel (magnitudes do not change the cost of a step).
+SAFETY_OPTIONS = {
+    "constraints": [{"type": "default", "on": "state"}, {"type": "default", "on": "input"}],
+    "disturbances": {
+        "action": [{"type": "white_noise", "std": 0.001}],
+        "observation": [{"type": "white_noise", "std": 0.001}],
+        "dynamics": [{"type": "white_noise", "std": 0.0001}],
+    },
+}
+TARGET_SAFE_OVER_ENV = 0.7
+
+
 # --------------------------------------------------------------------------------------------- functions
 def build(env, batch: int, steps: int, seed: int):
     """The env and bare-kernel functions of one (system, batch) with their arguments (the reset is done here)."""
@@ -269,6 +282,19 @@ def _targets(rows: list[dict], device: dict, cores: int) -> list[dict]:
     else:
         status, detail = "N/A", "nothing measured"
     targets.append({"target": f"compile < {TARGET_COMPILE_S:g} s (env function)", "status": status, "detail": detail})
+
+    if rows:
+        worst = min(rows, key=lambda r: r["safe_over_env"])
+        below = [f"{r['system']}/{r['batch']} ({r['safe_over_env']:.2f})" for r in rows
+                 if r["safe_over_env"] < TARGET_SAFE_OVER_ENV]  # fmt: skip
+        detail = f"min {worst['safe_over_env']:.2f} at {worst['system']}/{worst['batch']}"
+        if below:
+            detail += "; below: " + ", ".join(below)
+        status = "PASS" if not below else "FAIL"
+    else:
+        status, detail = "N/A", "nothing measured"
+    targets.append({"target": f"with constraints and disturbances >= {TARGET_SAFE_OVER_ENV:.0%} of the plain env "
+                              "(every row)", "status": status, "detail": detail})  # fmt: skip
     return targets
 
 
@@ -285,8 +311,8 @@ def print_report(console: Console, rows: list[dict], targets: list[dict], meta: 
     )
     for header in ("system", "batch", "N x calls"):
         table.add_column(header, justify="right" if header != "system" else "left")
-    for header in ("env steps/s", "bare steps/s", "env/bare", "real-time factor", "env compile s",
-                   "bare compile s", "vs original (2,100/s)"):  # fmt: skip
+    for header in ("env steps/s", "bare steps/s", "env/bare", "safe steps/s", "safe/env", "real-time factor",
+                   "env compile s", "bare compile s", "vs original (2,100/s)"):  # fmt: skip
         table.add_column(header, justify="right")
     for r in rows:
         vs = f"x{r['vs_original']:,.0f}" if r["vs_original"] is not None else ""
@@ -297,6 +323,8 @@ def print_report(console: Console, rows: list[dict], targets: list[dict], meta: 
             _rate(r["env_steps_per_s"]),
             _rate(r["bare_steps_per_s"]),
             f"{r['env_over_bare']:.2f}",
+            _rate(r["safe_steps_per_s"]),
+            f"{r['safe_over_env']:.2f}",
             f"{r['real_time_factor']:,.0f}",
             f"{r['env_compile_s']:.2f}",
             f"{r['bare_compile_s']:.2f}",
@@ -307,6 +335,8 @@ def print_report(console: Console, rows: list[dict], targets: list[dict], meta: 
         f"steps/s = batch * N / time per call ({cfg['stat']} of {cfg['repeats']} timed runs, each at least "
         f"{cfg['min_time']:g} s of back-to-back calls; calls per run shown env/bare); reset outside the timed "
         "function.\n"
+        "safe = the same env with the default state and input constraints and white noise on the action, "
+        "observation and dynamics channels.\n"
         "real-time factor = env steps/s * dt: simulated seconds per wall-clock second, summed over the batch.\n"
         f"compile = jit lower + XLA compile. vs original: cart-pole env steps/s over the ~"
         f"{ORIGINAL_CARTPOLE_STEPS_PER_S:,.0f} control steps/s of the original safe-control-gym (PyBullet, one "
@@ -408,17 +438,21 @@ def main(argv=None) -> int:
     if meta["load_average_start"] and meta["load_average_start"][0] > 0.5 * cores:
         console.print("[yellow]warning: the machine is busy (load average above half the cores); timings may be low")
 
-    total = len(args.systems) * len(args.batches) * 2
+    total = len(args.systems) * len(args.batches) * 3
     done = 0
     rows = []
     for name in args.systems:
-        env = scg_jax.make(
-            name, "stabilization", integrator=args.integrator, ctrl_freq=args.ctrl_freq, physics_freq=args.physics_freq
-        )
+        options = dict(integrator=args.integrator, ctrl_freq=args.ctrl_freq, physics_freq=args.physics_freq)
+        env = scg_jax.make(name, "stabilization", **options)
+        safe_env = scg_jax.make(name, "stabilization", **options, **SAFETY_OPTIONS)
         for batch, steps in zip(args.batches, args.steps, strict=True):
             (env_fn, env_args), (bare_fn, bare_args) = build(env, batch, steps, args.seed)
+            (safe_fn, safe_args), _ = build(safe_env, batch, steps, args.seed)
             result = measure_pair(
-                {"env": (env_fn, env_args), "bare": (bare_fn, bare_args)}, args.repeats, args.min_time, args.stat
+                {"env": (env_fn, env_args), "bare": (bare_fn, bare_args), "safe": (safe_fn, safe_args)},
+                args.repeats,
+                args.min_time,
+                args.stat,
             )
             for kind, m in result.items():
                 m["steps_per_s"] = batch * steps / m["call_s"]
@@ -432,6 +466,7 @@ def main(argv=None) -> int:
             x_env = np.asarray(result["env"]["output"][1])
             x_bare = np.asarray(result["bare"]["output"])
             env_sps, bare_sps = result["env"]["steps_per_s"], result["bare"]["steps_per_s"]
+            safe_sps = result["safe"]["steps_per_s"]
             row = {
                 "system": name,
                 "batch": batch,
@@ -441,6 +476,8 @@ def main(argv=None) -> int:
                 "env_steps_per_s": env_sps,
                 "bare_steps_per_s": bare_sps,
                 "env_over_bare": env_sps / bare_sps,
+                "safe_steps_per_s": safe_sps,
+                "safe_over_env": safe_sps / env_sps,
                 "real_time_factor": env_sps * env.dt,
                 "bare_real_time_factor": bare_sps * env.dt,
                 "physics_steps_per_s": env_sps * env.substeps,
@@ -448,7 +485,7 @@ def main(argv=None) -> int:
                 # final states of env and bare kernel from the same start (same arithmetic; tiny if any)
                 "max_abs_diff_final_x": float(np.max(np.abs(x_env - x_bare))),
             }
-            for kind in ("env", "bare"):
+            for kind in ("env", "bare", "safe"):
                 m = result[kind]
                 for key in ("compile_s", "lower_s", "xla_compile_s", "calls_per_run", "call_s", "call_s_min",
                             "call_s_median", "call_s_max"):  # fmt: skip

@@ -68,7 +68,10 @@ class QuadraticConstraintParams:
 
 
 def _matrix(path: str, value, shape) -> np.ndarray:
-    array = np.asarray(value, dtype=float)
+    try:
+        array = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: expected numbers of shape {shape}, got {value!r}") from None
     if array.shape != shape:
         raise ValueError(f"{path}: expected shape {shape}, got {array.shape}")
     if np.any(np.isnan(array)):
@@ -116,22 +119,29 @@ def parse_constraint(path: str, raw: dict, system, state_bounds, input_bounds):
     if not isinstance(strict, bool):
         raise ValueError(f"{path}.strict: expected true or false, got {strict!r}")
 
+    for key in _KEYS[kind]:
+        if key not in raw:
+            raise ValueError(f"{path}.{key}: required for a {kind} constraint")
     if kind == "quadratic":
-        P = _matrix(f"{path}.P", raw.get("P"), (d, d))
-        b = float(raw.get("b"))
+        P = _matrix(f"{path}.P", raw["P"], (d, d))
+        b = _matrix(f"{path}.b", raw["b"], ())
         spec = ConstraintSpec(kind, on, dims, strict, "quadratic", 1)
-        return spec, {"P": P, "b": np.asarray(b), "tolerance": np.asarray(tolerance)}
+        return spec, {"P": P, "b": b, "tolerance": np.asarray(tolerance)}
     if kind == "linear":
-        A = np.asarray(raw.get("A"), dtype=float)
+        try:
+            A = np.asarray(raw["A"], dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError(f"{path}.A: expected a matrix of numbers of shape (rows, {d}), got {raw['A']!r}") from None
         if A.ndim != 2 or A.shape[1] != d:
             raise ValueError(f"{path}.A: expected shape (rows, {d}), got {A.shape}")
         b = _matrix(f"{path}.b", raw.get("b"), (A.shape[0],))
     else:
         if kind == "bounded":
-            low = _matrix(f"{path}.low", raw.get("low"), (d,))
-            high = _matrix(f"{path}.high", raw.get("high"), (d,))
+            low = _matrix(f"{path}.low", raw["low"], (d,))
+            high = _matrix(f"{path}.high", raw["high"], (d,))
         elif kind == "abs_bound":
-            bound = np.broadcast_to(np.asarray(raw.get("bound"), dtype=float), (d,))
+            bound = np.asarray(raw["bound"], dtype=float)
+            bound = _matrix(f"{path}.bound", np.full(d, bound) if bound.ndim == 0 else bound, (d,))
             if np.any(bound < 0):
                 raise ValueError(f"{path}.bound: must be non-negative, got {np.asarray(raw.get('bound')).tolist()!r}")
             low, high = -bound, bound

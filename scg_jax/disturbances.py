@@ -123,12 +123,18 @@ def parse_disturbance(path: str, raw: dict, channel: str, dim: int, num_steps: i
             if kind == "impulse" and value == "random":
                 random_start = True
                 continue
-            if isinstance(value, bool) or not float(value).is_integer() or value < 0:
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, int | float)
+                or not float(value).is_integer()
+                or value < 0
+            ):
                 allowed_text = "a non-negative integer or 'random'" if kind == "impulse" else "a non-negative integer"
                 raise ValueError(f"{path}.start_step: expected {allowed_text}, got {value!r}")
             values[key] = np.asarray(int(value), np.int32)
         elif key == "duration":
-            if isinstance(value, bool) or not float(value).is_integer() or not 1 <= value <= num_steps:
+            valid = isinstance(value, int | float) and not isinstance(value, bool) and float(value).is_integer()
+            if not valid or not 1 <= value <= num_steps:
                 raise ValueError(
                     f"{path}.duration: expected an integer number of steps in [1, {num_steps}], got {value!r}"
                 )
@@ -168,13 +174,45 @@ def initial_state(spec: DisturbanceSpec, params: DisturbanceParams, key, num_ste
     return DisturbanceState(phase=phase, start=start)
 
 
-def sample(spec: DisturbanceSpec, params: DisturbanceParams, state: DisturbanceState, key, step, dt: float):
-    """The value (dim,) of one disturbance at control step ``step``."""
+RANDOM_TYPES = ("white_noise", "uniform")
+
+
+def draw_standard_noise(specs_by_channel: dict, key, dtype) -> dict:
+    """All per-step randomness of an env in one draw: ``{(channel, index): standard sample (dim,)}``.
+
+    White-noise disturbances get ``N(0, 1)`` samples and uniform ones ``U(0, 1)`` samples, each taken from a
+    single vector draw for all channels together (one normal and at most one uniform draw per step), because the
+    number of PRNG calls, not their size, dominates the cost of a step of these small systems.
+    """
+    layout = {kind: [] for kind in RANDOM_TYPES}
+    for channel in CHANNELS:
+        for index, spec in enumerate(specs_by_channel.get(channel, ())):
+            if spec.type in RANDOM_TYPES:
+                layout[spec.type].append(((channel, index), spec.dim))
+    needed = [kind for kind in RANDOM_TYPES if layout[kind]]
+    keys = dict(zip(needed, jax.random.split(key, len(needed)) if len(needed) > 1 else [key], strict=True))
+    samples = {}
+    for kind in needed:
+        total = sum(dim for _, dim in layout[kind])
+        draw = (jax.random.normal if kind == "white_noise" else jax.random.uniform)(keys[kind], (total,), dtype)
+        start = 0
+        for name, dim in layout[kind]:
+            samples[name] = draw[start : start + dim]
+            start += dim
+    return samples
+
+
+def sample(spec: DisturbanceSpec, params: DisturbanceParams, state: DisturbanceState, noise, step, dt: float):
+    """The value (dim,) of one disturbance at control step ``step``.
+
+    ``noise`` is this disturbance's standard sample from ``draw_standard_noise`` (unused by the deterministic
+    types).
+    """
     dtype = jnp.asarray(params.mask).dtype
     if spec.type == "white_noise":
-        value = params.std * jax.random.normal(key, (spec.dim,), dtype)
+        value = params.std * noise
     elif spec.type == "uniform":
-        value = jax.random.uniform(key, (spec.dim,), dtype, minval=params.low, maxval=params.high)
+        value = params.low + (params.high - params.low) * noise
     elif spec.type == "step":
         value = params.magnitude * (step >= state.start)
     elif spec.type == "impulse":
@@ -186,10 +224,9 @@ def sample(spec: DisturbanceSpec, params: DisturbanceParams, state: DisturbanceS
     return (params.mask * value).astype(dtype)
 
 
-def channel_value(specs, params_list, states, key, step, dt: float, dim: int, dtype):
+def channel_value(channel: str, specs, params_list, states, noise: dict, step, dt: float, dim: int, dtype):
     """Sum of a channel's disturbances, applied in order; zeros (dim,) when the channel has none."""
     total = jnp.zeros(dim, dtype)
-    keys = jax.random.split(key, max(len(specs), 1))
-    for spec, params, state, k in zip(specs, params_list, states, keys, strict=False):
-        total = total + sample(spec, params, state, k, step, dt)
+    for index, (spec, params, state) in enumerate(zip(specs, params_list, states, strict=True)):
+        total = total + sample(spec, params, state, noise.get((channel, index)), step, dt)
     return total

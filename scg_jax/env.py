@@ -115,7 +115,8 @@ class EnvState:
     Attributes:
         x: (nx,) physical state.
         step: control-step counter (int32), 0 after reset.
-        key: PRNG key for everything random after reset (split at every step).
+        key: the episode's PRNG key; the random disturbances of step k (and the observation noise of the state it
+            reaches) are drawn from ``fold_in(key, k)``.
         physics: the plant's physical parameters in this episode (randomised ones as drawn).
         disturbances: ``{channel: tuple of DisturbanceState}``, the per-episode draws (periodic phases, impulse
             starts).
@@ -366,23 +367,37 @@ class Env:
         goals, _ = jax.vmap(lambda k: self.reference_at(k, params))(steps)
         return jnp.concatenate([state.x, goals.reshape(-1)])
 
-    def _disturb(self, channel: str, state: EnvState, params: EnvParams, key, step):
+    @property
+    def has_step_noise(self) -> bool:
+        """Whether any disturbance draws random numbers at every step (white noise or uniform)."""
+        return any(
+            spec.type in disturbances_lib.RANDOM_TYPES for specs in self.disturbance_specs.values() for spec in specs
+        )
+
+    def _step_noise(self, key, params: EnvParams) -> dict:
+        """Standard samples of every per-step random disturbance from ``key`` (one draw for all channels)."""
+        if not self.has_step_noise:
+            return {}
+        return disturbances_lib.draw_standard_noise(self.disturbance_specs, key, params.goal.dtype)
+
+    def _disturb(self, channel: str, state: EnvState, params: EnvParams, noise: dict, step):
         return disturbances_lib.channel_value(
+            channel,
             self.disturbance_specs.get(channel, ()),
             params.disturbances.get(channel, ()),
             state.disturbances.get(channel, ()),
-            key,
+            noise,
             step,
             self.dt,
             self.channel_dim(channel),
             params.goal.dtype,
         )
 
-    def _noisy_observation(self, state: EnvState, params: EnvParams, key):
+    def _noisy_observation(self, state: EnvState, params: EnvParams, noise: dict):
         obs = self.observe(state, params)
         if not self.disturbance_specs.get("observation"):
             return obs
-        return obs.at[: self.nx].add(self._disturb("observation", state, params, key, state.step))
+        return obs.at[: self.nx].add(self._disturb("observation", state, params, noise, state.step))
 
     def reset(self, key, params: EnvParams):
         """Start an episode: draw the initial state, the plant's randomised parameters and the per-episode
@@ -406,7 +421,7 @@ class Env:
                 for spec, p, k in zip(specs, params.disturbances[channel], channel_keys, strict=True)
             )
         state = EnvState(x=x0, step=jnp.zeros((), jnp.int32), key=key, physics=physics, disturbances=draws)
-        return self._noisy_observation(state, params, key_obs), state
+        return self._noisy_observation(state, params, self._step_noise(key_obs, params)), state
 
     def step(self, state: EnvState, action, params: EnvParams, adversary=None) -> StepOutput:
         """Advance one control step.
@@ -429,16 +444,18 @@ class Env:
                 "adversary: this env was made without an adversary channel; pass "
                 "adversary={'channel': ..., 'scale': ...} to make"
             )
-        key, key_action, key_dynamics, key_obs = jax.random.split(state.key, 4)
+        # One draw per step, from fold_in(episode key, k), serves the action and dynamics disturbances of step k
+        # and the observation noise of the state it reaches: PRNG calls dominate the cost of these small systems.
+        noise = self._step_noise(jax.random.fold_in(state.key, state.step), params) if self.has_step_noise else {}
         extra = {channel: 0.0 for channel in disturbances_lib.CHANNELS}
         if adversary is not None:
             extra[self.adversary_channel] = params.adversary_scale * jnp.clip(adversary, -1.0, 1.0)
 
         u_cmd = self.action_to_input(action, params)
         u_low, u_high = self.input_bounds(state.physics)
-        u_disturbed = u_cmd + self._disturb("action", state, params, key_action, state.step) + extra["action"]
+        u_disturbed = u_cmd + self._disturb("action", state, params, noise, state.step) + extra["action"]
         u = jnp.clip(u_disturbed, u_low, u_high)
-        f_ext = self._disturb("dynamics", state, params, key_dynamics, state.step) + extra["dynamics"]
+        f_ext = self._disturb("dynamics", state, params, noise, state.step) + extra["dynamics"]
         x_next = self.integrate(state.x, u, state.physics, f_ext)
         finite = jnp.all(jnp.isfinite(x_next))
         x_next = jnp.where(finite, x_next, state.x)
@@ -482,7 +499,7 @@ class Env:
             reward = jnp.where(out_of_bounds, 0.0, 1.0).astype(x_next.dtype)
         reward = reward - params.violation_penalty * cost
 
-        next_state = state.replace(x=x_next, step=step, key=key)
+        next_state = state.replace(x=x_next, step=step)
         info = {
             "mse": jnp.sum(params.mse_weight * error**2),
             "quadratic_cost": quadratic_cost,
@@ -497,7 +514,7 @@ class Env:
             "constraint_violation": violation,
         }
         return StepOutput(
-            obs=self._noisy_observation(next_state, params, key_obs),
+            obs=self._noisy_observation(next_state, params, noise),
             state=next_state,
             reward=reward,
             cost=cost,

@@ -132,3 +132,21 @@ def test_a_sweep_over_constraint_tightness_is_a_vmap():
 def test_bad_constraints_name_the_field(option, message):
     with pytest.raises(ValueError, match=message):
         scg_jax.make("quadrotor_2d", constraints=[option])
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        ({"type": "quadratic", "P": np.eye(6).tolist()}, r"constraints\[0\].b: required for a quadratic constraint"),
+        ({"type": "abs_bound"}, r"constraints\[0\].bound: required for a abs_bound constraint"),
+        (
+            {"type": "abs_bound", "bound": [1.0, 2.0]},
+            r"constraints\[0\].bound: expected numbers of shape \(6,\)|"
+            r"constraints\[0\].bound: expected shape \(6,\)",
+        ),
+        ({"type": "linear", "A": "wide", "b": [1]}, r"constraints\[0\].A"),
+    ],
+)
+def test_missing_or_malformed_constraint_values_name_the_field(option, message):
+    with pytest.raises(ValueError, match=message):
+        scg_jax.make("quadrotor_2d", constraints=[option])

@@ -157,3 +157,10 @@ def test_adversary_input_is_clipped_and_scaled_on_its_channel():
 def test_bad_disturbances_name_the_field(disturbances, message):
     with pytest.raises(ValueError, match=message):
         scg_jax.make("quadrotor_2d", disturbances=disturbances)
+
+
+def test_random_start_is_only_for_impulses():
+    with pytest.raises(ValueError, match=r"disturbances.action\[0\].start_step: expected a non-negative integer, got"):
+        scg_jax.make(
+            "quadrotor_2d", disturbances={"action": [{"type": "step", "magnitude": 1, "start_step": "random"}]}
+        )
