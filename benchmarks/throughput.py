@@ -27,12 +27,10 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import math
 import os
 import platform
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -43,6 +41,8 @@ from jax import lax
 from rich import box
 from rich.console import Console
 from rich.table import Table
+
+from scg_jax.files import write_json
 
 # The original safe-control-gym (PyBullet, one env, 50 Hz control / 1000 Hz physics, with constraints and
 # disturbances) runs about 2,100 cart-pole control steps per second; printed for scale only.
@@ -346,25 +346,6 @@ def print_report(console: Console, rows: list[dict], targets: list[dict], meta: 
     for t in targets:
         style = {"PASS": "green", "FAIL": "red"}.get(t["status"], "yellow")
         console.print(f"  [{style}]{t['status']:<4}[/{style}]  {t['target']}: {t['detail']}", highlight=False)
-
-
-def write_json(path: Path, data: dict) -> None:
-    """Write ``data`` to ``path`` atomically (temporary file in the same folder, then ``os.replace``)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=2)
-            f.write("\n")
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp makes it 0600
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _cpu_count() -> int:

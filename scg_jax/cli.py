@@ -1,0 +1,380 @@
+"""The ``scg-jax`` command line.
+
+Subcommands (each a ``_add_<name>_parser`` / ``_run_<name>`` pair registered in ``_SUBCOMMANDS``):
+
+- ``rollout``: one episode of ``--num-envs`` parallel copies under a simple policy; prints a metrics table and
+  writes ``rollout.npz``, ``metrics.json`` and ``rollout.png`` to ``--out``.
+
+``main(argv) -> int`` never raises ``SystemExit`` itself: it returns 0 on success and 2 on bad input (argparse's
+convention), so it can be called from tests and from the console script alike.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from scg_jax.files import write_atomic, write_json
+from scg_jax.integrators import INTEGRATORS
+from scg_jax.systems import SYSTEMS
+from scg_jax.trajectories import SHAPES
+
+TASKS = ("stabilization", "tracking")
+POLICIES = ("zero", "random", "linear")
+_AXES = "xyz"
+
+# make()'s option names as they appear in its ValueErrors, and the flag a user would have to change.
+_FLAG_OF_OPTION = {
+    "system": "--system",
+    "task": "--task",
+    "ctrl_freq": "--ctrl-freq",
+    "physics_freq": "--physics-freq",
+    "episode_len_sec": "--episode-len",
+    "integrator": "--integrator",
+    "trajectory.shape": "--shape",
+    "trajectory.num_cycles": "--num-cycles",
+    "trajectory.plane": "--plane",
+    "trajectory.offset": "--offset",
+    "trajectory.scale": "--scale",
+}
+
+
+class _UsageError(Exception):
+    """Bad command-line input found after parsing; reported through the subcommand's ``parser.error``."""
+
+
+def _float_list(text: str) -> list[float]:
+    """``"a,b,c"`` -> floats; an ``argparse`` type, so a malformed number is reported with the option's name."""
+    try:
+        values = [float(item) for item in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+    if not all(np.isfinite(values)):
+        raise argparse.ArgumentTypeError(f"values must be finite, got {text!r}")
+    return values
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+# ----------------------------------------------------------------------------------------------- shared options
+def _add_env_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options that build an environment; shared by every subcommand that makes one.
+
+    The environment is a config: ``--config FILE`` (or just ``--system``), then the flags given explicitly, then
+    every ``--set env.KEY=VALUE`` in order, as overrides of that config.
+    """
+    env = parser.add_argument_group("environment (a config file, flags, and --set overrides applied in that order)")
+    env.add_argument("--config", type=Path, metavar="FILE", help="YAML config file (see configs/)")
+    env.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config field by its dotted path, e.g. env.ctrl_freq=15 (repeatable; YAML values)",
+    )
+    env.add_argument("--system", choices=tuple(SYSTEMS), help="system to simulate (required without --config)")
+    env.add_argument("--task", choices=TASKS, help="task (default: stabilization)")
+    env.add_argument("--ctrl-freq", type=_positive_int, help="control frequency, Hz (default: 50)")
+    env.add_argument("--physics-freq", type=_positive_int, help="physics frequency, Hz, a multiple of --ctrl-freq")
+    env.add_argument("--episode-len", type=float, help="episode length, s (default: 5)")
+    env.add_argument("--integrator", choices=INTEGRATORS, help="integrator (default: rk4)")
+    traj = parser.add_argument_group("tracking reference (--task tracking only; defaults are per system)")
+    traj.add_argument("--shape", choices=SHAPES, help="reference shape (default: circle)")
+    traj.add_argument("--num-cycles", type=float, help="cycles per episode (default: 1)")
+    traj.add_argument("--plane", help="two distinct letters of x, y, z, e.g. xz")
+    traj.add_argument("--scale", type=float, help="shape size, m")
+    traj.add_argument("--offset", type=_float_list, metavar="A,B", help="in-plane offset, m")
+
+
+def _make_env(args: argparse.Namespace):
+    """``(env, params)`` from ``--config``/``--system``, the explicit flags and ``--set``; config and ``make``
+    errors become ``_UsageError`` naming the flag or the dotted config path."""
+    import yaml
+
+    from scg_jax.config import load_config, make_from_config
+
+    if args.config is None and args.system is None:
+        raise _UsageError("argument --system: required unless --config is given")
+    if args.offset is not None and len(args.offset) != 2:
+        raise _UsageError(
+            f"argument --offset: expected 2 comma-separated values A,B (m), got {len(args.offset)}: "
+            f"{','.join(map(str, args.offset))}"
+        )
+    flags = {
+        "system": args.system,
+        "task": args.task,
+        "ctrl_freq": args.ctrl_freq,
+        "physics_freq": args.physics_freq,
+        "episode_len_sec": args.episode_len,
+        "integrator": args.integrator,
+        "trajectory.shape": args.shape,
+        "trajectory.num_cycles": args.num_cycles,
+        "trajectory.plane": args.plane,
+        "trajectory.scale": args.scale,
+        "trajectory.offset": args.offset,
+    }
+    overrides = [
+        f"env.{key}={yaml.safe_dump(value, default_flow_style=True).strip().removesuffix('...').strip()}"
+        for key, value in flags.items()
+        if value is not None
+    ]
+    source = args.config if args.config is not None else {"env": {"system": args.system}}
+    try:
+        cfg = load_config(source, overrides + list(args.set))
+        return make_from_config(cfg)
+    except (ValueError, OSError) as error:
+        message = str(error)
+        option = message.split(":", 1)[0].removeprefix("env.")
+        if option in _FLAG_OF_OPTION:
+            message = f"argument {_FLAG_OF_OPTION[option]}: {message}"
+        raise _UsageError(message) from None
+
+
+def _plane_indices(env) -> tuple[str, tuple[int, int]] | None:
+    """The plane a quadrotor's path is drawn in and the state indices of its two position coordinates."""
+    if env.system.name not in ("quadrotor_2d", "quadrotor_3d"):
+        return None
+    plane = env.trajectory_plane or env.system.default_plane
+    position_index = {axis: pos for axis, pos, _ in env.system.tracking_axes}
+    axes = [_AXES.index(letter) for letter in plane]
+    if not all(axis in position_index for axis in axes):
+        # e.g. quadrotor_2d asked for a plane with y: it has no y position, so draw its own plane instead.
+        plane = env.system.default_plane
+        axes = [_AXES.index(letter) for letter in plane]
+    return plane, (position_index[axes[0]], position_index[axes[1]])
+
+
+# ----------------------------------------------------------------------------------------------- output
+# ----------------------------------------------------------------------------------------------- rollout
+def _add_rollout_parser(subparsers) -> argparse.ArgumentParser:
+    parser = subparsers.add_parser(
+        "rollout",
+        help="roll out a simple policy in parallel copies and save data, metrics and a plot",
+        description=(
+            "Run one episode of --num-envs parallel copies under a simple policy acting on the physical input "
+            "(N): zero holds the reference input (hover thrust, 0 N for the cart-pole), random draws uniformly "
+            "within the actuator limits, linear applies u = u_ref - K (x - x_ref)."
+        ),
+    )
+    _add_env_arguments(parser)
+    run = parser.add_argument_group("rollout")
+    run.add_argument("--policy", default="linear", choices=POLICIES, help="policy (default: %(default)s)")
+    run.add_argument(
+        "--gain",
+        type=_float_list,
+        metavar="K11,K12,...",
+        help="linear gain K, nu x nx row-major (default: LQR about the goal or the first reference point)",
+    )
+    run.add_argument("--num-envs", type=_positive_int, default=64, help="parallel copies (default: 64)")
+    run.add_argument("--seed", type=int, default=0, help="PRNG seed (default: 0)")
+    run.add_argument("--out", type=Path, help="output folder (default: results/rollout/SYSTEM-TASK-POLICY-seedSEED)")
+    return parser
+
+
+def _make_policy(env, params, args) -> tuple[Callable, np.ndarray | None]:
+    """The policy ``policy(obs, state, params, key) -> action`` and the gain K (nu, nx) it uses, if linear."""
+    import jax
+    import jax.numpy as jnp
+
+    dtype = params.goal.dtype
+    gain = None
+    if args.gain is not None and args.policy != "linear":
+        raise _UsageError(f"argument --gain: only used with --policy linear, not --policy {args.policy}")
+    if args.policy == "linear":
+        if args.gain is not None:
+            if len(args.gain) != env.nu * env.nx:
+                raise _UsageError(
+                    f"argument --gain: {env.system.name} needs nu x nx = {env.nu} x {env.nx} = {env.nu * env.nx} "
+                    f"comma-separated values (row-major), got {len(args.gain)}"
+                )
+            gain = np.asarray(args.gain, dtype=np.float64).reshape(env.nu, env.nx)
+        else:
+            from algorithms.lqr import lqr_gain_about
+
+            x0, u0 = jax.jit(env.reference_at)(0, params)
+            gain = lqr_gain_about(env, params, np.asarray(x0), np.asarray(u0))
+        k = jnp.asarray(gain, dtype=dtype)
+
+    def policy(obs, state, p, key):
+        x_ref, u_ref = env.reference_at(state.step, p)
+        if args.policy == "zero":
+            u = u_ref
+        elif args.policy == "random":
+            low, high = env.input_bounds(state.physics)
+            u = jax.random.uniform(key, (env.nu,), dtype=dtype, minval=low.astype(dtype), maxval=high.astype(dtype))
+        else:
+            u = u_ref - k @ (state.x - x_ref)
+        # The CLI's envs use physical actions, where this is the identity; it keeps the policy right otherwise.
+        return env.input_to_action(u, p)
+
+    return policy, gain
+
+
+def _run_rollout(args: argparse.Namespace, console) -> int:
+    import jax
+    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    from scg_jax.metrics import summarize, trajectory_metrics
+    from scg_jax.plotting import plot_rollout
+    from scg_jax.rollout import make_rollout
+
+    env, params = _make_env(args)
+    out = args.out or Path("results", "rollout", f"{env.system.name}-{env.task}-{args.policy}-seed{args.seed}")
+
+    with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=console) as bar:
+        stage = bar.add_task(f"linearising {env.system.name} and building the policy", total=1)
+        policy, gain = _make_policy(env, params, args)
+        bar.update(stage, completed=1)
+
+        stage = bar.add_task(f"compiling {args.num_envs} copies x {env.num_steps} steps", total=1)
+        key = jax.random.key(args.seed)
+        start = time.perf_counter()
+        rollout = make_rollout(env, policy, args.num_envs, auto_reset=False).lower(key, params).compile()
+        compile_s = time.perf_counter() - start
+        bar.update(stage, completed=1)
+
+        stage = bar.add_task("running", total=1)
+        start = time.perf_counter()
+        traj = jax.block_until_ready(rollout(key, params))
+        run_s = time.perf_counter() - start
+        bar.update(stage, completed=1)
+
+        stage = bar.add_task(f"writing {out}", total=1)
+        per_copy = trajectory_metrics(traj)
+        summary = summarize(per_copy)
+        steps_per_s = args.num_envs * env.num_steps / run_s
+        data = _rollout_data(env, params, traj)
+        out.mkdir(parents=True, exist_ok=True)
+        write_atomic(out / "rollout.npz", lambda file: np.savez_compressed(file, **data))
+        record = {
+            "command": "rollout",
+            "system": env.system.name,
+            "task": env.task,
+            "config": None if args.config is None else str(args.config),
+            "overrides": list(args.set),
+            "policy": args.policy,
+            "num_envs": args.num_envs,
+            "num_steps": env.num_steps,
+            "seed": args.seed,
+            "env": {
+                "ctrl_freq": env.ctrl_freq,
+                "physics_freq": env.physics_freq,
+                "episode_len_sec": env.episode_len_sec,
+                "integrator": env.integrator,
+                "trajectory_shape": env.trajectory_shape,
+                "trajectory_plane": env.trajectory_plane,
+            },
+            "gain": None if gain is None else gain.tolist(),
+            "summary": summary,
+            "timing": {"compile_s": compile_s, "run_s": run_s, "steps_per_s": steps_per_s},
+            "device": str(jax.devices()[0]),
+            "per_copy": {name: np.asarray(values).tolist() for name, values in per_copy.items()},
+        }
+        write_json(out / "metrics.json", record)
+        # The plot reads the saved file, not the in-memory rollout, so it shows exactly what was kept.
+        plot_rollout(out / "rollout.npz", out / "rollout.png")
+        bar.update(stage, completed=1)
+
+    console.print(_metrics_table(args, env, summary, compile_s, run_s, steps_per_s))
+    console.print(f"wrote {out / 'rollout.npz'}, {out / 'metrics.json'}, {out / 'rollout.png'}")
+    return 0
+
+
+def _rollout_data(env, params, traj) -> dict[str, np.ndarray]:
+    import jax
+
+    x_ref, u_ref = jax.jit(env.reference)(params)
+    data = {
+        "t": env.dt * np.arange(env.num_steps, dtype=np.float64),
+        "dt": np.float64(env.dt),
+        "x": np.asarray(traj.x),
+        "x_final": np.asarray(traj.final_state.x),
+        "action": np.asarray(traj.action),
+        "u": np.asarray(traj.info["u"]),
+        "reward": np.asarray(traj.reward),
+        "cost": np.asarray(traj.cost),
+        "constraint_values": np.asarray(traj.info["constraint_values"]),
+        "terminated": np.asarray(traj.terminated),
+        "truncated": np.asarray(traj.truncated),
+        "mse": np.asarray(traj.info["mse"]),
+        "out_of_bounds": np.asarray(traj.info["out_of_bounds"]),
+        "nonfinite": np.asarray(traj.info["nonfinite"]),
+        "x_ref": np.asarray(x_ref),
+        "u_ref": np.asarray(u_ref),
+        "state_names": np.asarray(env.system.state_names),
+        "input_names": np.asarray(env.system.input_names),
+        "system": np.asarray(env.system.name),
+        "task": np.asarray(env.task),
+    }
+    plane = _plane_indices(env)
+    if plane is not None:
+        data["plane"] = np.asarray(plane[0])
+        data["plane_indices"] = np.asarray(plane[1], dtype=np.int64)
+    return data
+
+
+def _metrics_table(args, env, summary: dict, compile_s: float, run_s: float, steps_per_s: float):
+    from rich.table import Table
+
+    title = f"{env.system.name} {env.task} | policy {args.policy} | {args.num_envs} copies x {env.num_steps} steps"
+    table = Table(title=title, min_width=len(title) + 4)
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    table.add_row("rmse (m)", f"{summary['rmse_mean']:.4f} ± {summary['rmse_std']:.4f}")
+    table.add_row("return", f"{summary['return_mean']:.3f} ± {summary['return_std']:.3f}")
+    table.add_row("length (steps)", f"{summary['length_mean']:.1f} / {env.num_steps}")
+    table.add_row("failure rate", f"{summary['failure_rate']:.3f}")
+    table.add_row("steps in violation", f"{summary['violation_steps_mean']:.1f} ± {summary['violation_steps_std']:.1f}")
+    table.add_row("compile time (s)", f"{compile_s:.2f}")
+    table.add_row("run wall time (s)", f"{run_s:.4f}")
+    table.add_row("steps/s", f"{steps_per_s:,.0f}")
+    return table
+
+
+# ----------------------------------------------------------------------------------------------- entry point
+_SUBCOMMANDS: dict[str, tuple[Callable, Callable]] = {
+    "rollout": (_add_rollout_parser, _run_rollout),
+}
+
+
+def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
+    """The top-level parser and each subcommand's parser (to report errors against the right usage line)."""
+    parser = argparse.ArgumentParser(prog="scg-jax", description="safe-control-gym in JAX")
+    subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    subcommand_parsers = {name: add(subparsers) for name, (add, _) in _SUBCOMMANDS.items()}
+    return parser, subcommand_parsers
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the CLI on ``argv`` (default: ``sys.argv[1:]``); returns the exit status (0 ok, 2 bad input)."""
+    from rich.console import Console
+
+    parser, subcommand_parsers = build_parser()
+    try:
+        args = parser.parse_args(argv)
+        try:
+            return _SUBCOMMANDS[args.command][1](args, Console())
+        except _UsageError as error:
+            subcommand_parsers[args.command].error(str(error))
+    except SystemExit as exit_:
+        # argparse exits for --help (0) and for bad input (2); return the status instead of raising it.
+        code = exit_.code
+        return code if isinstance(code, int) else (0 if code is None else 1)
+    return 1  # unreachable: parser.error always exits
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,131 @@
+"""Plots of saved rollouts. Results are data first: everything here reads the arrays the CLI saves in
+``rollout.npz`` (or the same keys in a dict) and never re-runs an environment.
+
+Keys read (T control steps, N copies):
+
+- ``t`` (T,): time of each row of ``x``, s; ``dt``: control period, s (optional, else ``t[1] - t[0]``).
+- ``x`` (T, N, nx): state before each step; ``x_final`` (N, nx), optional: state after the last step.
+- ``x_ref`` (T + 1, nx): reference at ``k dt``, k = 0..T.
+- ``terminated``, ``truncated`` (T, N): cut each copy's curve at the end of its first episode.
+- ``state_names`` (nx,), ``system``, ``task``.
+- ``plane`` ("xz", ...) and ``plane_indices`` (2,), optional: the state indices of the position coordinates along
+  the plane's two axes; when present, a spatial subplot of the path in that plane is added.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from scg_jax.files import write_atomic
+from scg_jax.metrics import episode_lengths
+
+
+def _load(data) -> dict:
+    if isinstance(data, Mapping):
+        return dict(data)
+    with np.load(os.fspath(data), allow_pickle=False) as archive:
+        return {name: archive[name] for name in archive.files}
+
+
+def _episode_paths(data: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Times (T + 1,) and states (T + 1, N, nx), NaN after each copy's first episode so lines stop there."""
+    x = np.asarray(data["x"], dtype=np.float64)
+    num_steps = x.shape[0]
+    t = np.asarray(data["t"], dtype=np.float64)
+    dt = float(data["dt"]) if "dt" in data else float(t[1] - t[0]) if num_steps > 1 else 1.0
+    if "x_final" in data:
+        x = np.concatenate([x, np.asarray(data["x_final"], dtype=np.float64)[None]], axis=0)
+    else:  # without the final state the last step's outcome is unknown; show what there is
+        x = np.concatenate([x, np.full_like(x[:1], np.nan)], axis=0)
+    times = t[0] + dt * np.arange(num_steps + 1)
+    length = episode_lengths(data["terminated"], data["truncated"])
+    # An episode of L steps visits x_0 .. x_L.
+    after_end = np.arange(num_steps + 1)[:, None] > length[None, :]
+    x = np.where(after_end[..., None], np.nan, x)
+    return times, x
+
+
+def plot_rollout(data, png_path, max_copies: int = 8) -> Figure:
+    """Plot a saved rollout and write it as a PNG.
+
+    One subplot per state dimension (time in s on the x axis, up to ``max_copies`` copies as thin lines, the
+    reference dashed black, an ``x`` where an episode terminated early) and, when ``plane_indices`` is in the
+    data (the CLI saves it for quadrotor_2d and quadrotor_3d), a spatial subplot of the position path in the
+    trajectory plane against the reference.
+
+    Args:
+        data: dict of arrays or the path of a ``.npz`` with the keys listed in the module docstring.
+        png_path: output file; written to a temporary file in the same folder and renamed, so it is whole or
+            absent.
+        max_copies: how many copies to draw (the first ones).
+
+    Returns:
+        The matplotlib ``Figure`` (Agg canvas; no pyplot state is touched).
+    """
+    data = _load(data)
+    times, x = _episode_paths(data)
+    x_ref = np.asarray(data["x_ref"], dtype=np.float64)
+    terminated = np.asarray(data["terminated"], dtype=bool)
+    names = [str(name) for name in np.asarray(data["state_names"]).tolist()]
+    nx, num_envs = x.shape[2], x.shape[1]
+    shown = min(max_copies, num_envs)
+    length = episode_lengths(data["terminated"], data["truncated"])
+    ended_early = terminated[length - 1, np.arange(num_envs)]
+    ref_times = times[0] + (times[1] - times[0] if len(times) > 1 else 1.0) * np.arange(x_ref.shape[0])
+
+    spatial = "plane_indices" in data
+    num_panels = nx + int(spatial)
+    ncols = 2 if num_panels <= 4 else 3 if num_panels <= 9 else 4
+    nrows = math.ceil(num_panels / ncols)
+    fig = Figure(figsize=(4.2 * ncols, 2.8 * nrows), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+    colors = [f"C{i % 10}" for i in range(shown)]
+
+    for j in range(nx):
+        ax = axes[j]
+        for i in range(shown):
+            ax.plot(times, x[:, i, j], color=colors[i], lw=0.8, alpha=0.85)
+            if ended_early[i]:
+                ax.plot(times[length[i]], x[length[i], i, j], "x", color=colors[i], ms=5)
+        ax.plot(ref_times, x_ref[:, j], "k--", lw=1.2, label="reference")
+        ax.set_title(names[j], fontsize=10)
+        ax.set_xlabel("t [s]")
+        ax.grid(alpha=0.3)
+
+    if spatial:
+        ax = axes[nx]
+        ia, ib = (int(i) for i in np.asarray(data["plane_indices"]))
+        plane = str(data.get("plane", f"{names[ia]}{names[ib]}"))
+        for i in range(shown):
+            ax.plot(x[:, i, ia], x[:, i, ib], color=colors[i], lw=0.8, alpha=0.85)
+            ax.plot(x[0, i, ia], x[0, i, ib], "o", color=colors[i], ms=3)
+        ax.plot(x_ref[:, ia], x_ref[:, ib], "k--", lw=1.2, label="reference")
+        ax.plot(x_ref[0, ia], x_ref[0, ib], "ks", ms=4)
+        ax.set_xlabel(f"{plane[0]} [m]")
+        ax.set_ylabel(f"{plane[1]} [m]")
+        ax.set_title(f"path in the {plane} plane (o: start)", fontsize=10)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="best", fontsize=8)
+
+    for ax in axes[num_panels:]:
+        ax.set_visible(False)
+    fig.suptitle(
+        f"{data.get('system', '')} {data.get('task', '')}: {shown} of {num_envs} copies "
+        f"(x: terminated early, dashed: reference)",
+        fontsize=11,
+    )
+    _save_png(fig, Path(png_path))
+    return fig
+
+
+def _save_png(fig: Figure, path: Path) -> None:
+    write_atomic(path, lambda file: fig.savefig(file, format="png", dpi=110))

@@ -1,0 +1,84 @@
+"""The scg-jax command: outputs on disk, numbers in them, and clear errors."""
+
+import json
+
+import numpy as np
+import pytest
+
+from scg_jax.cli import main
+
+
+def _run(tmp_path, name, *args):
+    out = tmp_path / name
+    assert main(["rollout", *args, "--out", str(out)]) == 0
+    data = np.load(out / "rollout.npz")
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert (out / "rollout.png").stat().st_size > 10_000
+    return data, metrics
+
+
+def test_lqr_rollout_stabilises_the_cartpole_and_writes_consistent_files(tmp_path):
+    data, metrics = _run(
+        tmp_path, "lqr", "--system", "cartpole", "--policy", "linear", "--num-envs", "8", "--episode-len", "2"
+    )
+    assert data["x"].shape == (100, 8, 4) and data["x_ref"].shape == (101, 4) and data["u_ref"].shape == (100, 1)
+    assert metrics["summary"]["failure_rate"] == 0.0
+    assert np.abs(data["x_final"][:, 2]).max() < 0.05
+    # The summary is the data's: recompute the RMSE from the saved per-step mse.
+    np.testing.assert_allclose(metrics["per_copy"]["rmse"], np.sqrt(data["mse"].mean(axis=0)), rtol=1e-5)
+    K = np.asarray(metrics["gain"])
+    assert K.shape == (1, 4) and K[0, 2] < 0  # pushes the cart under a pole leaning towards +x
+
+
+def test_zero_policy_lets_the_pole_fall(tmp_path):
+    _, metrics = _run(tmp_path, "zero", "--system", "cartpole", "--policy", "zero", "--num-envs", "8")
+    assert metrics["summary"]["failure_rate"] > 0.5
+    assert metrics["summary"]["length_mean"] < 250
+
+
+def test_lqr_tracks_the_circle_better_than_hovering(tmp_path):
+    common = ["--system", "quadrotor_2d", "--task", "tracking", "--num-envs", "8", "--episode-len", "2"]
+    _, lqr = _run(tmp_path, "lqr", *common, "--policy", "linear")
+    _, hover = _run(tmp_path, "hover", *common, "--policy", "zero")
+    assert lqr["summary"]["rmse_mean"] < 0.7 * hover["summary"]["rmse_mean"]
+
+
+def test_config_and_set_overrides_reach_the_env(tmp_path):
+    data, metrics = _run(
+        tmp_path,
+        "cfg",
+        "--config",
+        "configs/paper_cartpole_lqr_mpc.yaml",
+        "--set",
+        "env.episode_len_sec=2",
+        "--set",
+        "env.constraints=[{type: abs_bound, on: input, bound: 0.01}]",
+        "--num-envs",
+        "4",
+    )
+    assert metrics["env"]["ctrl_freq"] == 15 and data["x"].shape[0] == 30
+    assert metrics["overrides"][0] == "env.episode_len_sec=2"
+    # An LQR force bounded by 1 cN cannot hold; every copy violates the input constraint at some step.
+    assert np.all(np.asarray(metrics["per_copy"]["violation_steps"]) > 0)
+    # Rows u - b and -b - u: the larger is |u| - b.
+    np.testing.assert_allclose(data["constraint_values"].max(axis=-1), np.abs(data["u"][..., 0]) - 0.01, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--system", "cartpole", "--task", "tracking", "--offset", "1,2,3"], "argument --offset: expected 2"),
+        (["--system", "pendulum"], "argument --system: invalid choice: 'pendulum'"),
+        (["--task", "tracking"], "argument --system: required unless --config is given"),
+        (["--system", "cartpole", "--policy", "linear", "--gain", "1,2"], "argument --gain: cartpole needs nu x nx"),
+        (
+            ["--system", "cartpole", "--ctrl-freq", "15"],
+            "argument --physics-freq: env.physics_freq: must be a multiple of ctrl_freq",
+        ),
+        (["--system", "cartpole", "--set", "env.trajectry.shape=circle"], "env.trajectry"),
+    ],
+)
+def test_bad_input_exits_2_naming_the_option(tmp_path, capsys, args, message):
+    assert main(["rollout", *args, "--out", str(tmp_path / "bad")]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
