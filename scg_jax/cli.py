@@ -100,8 +100,8 @@ def _add_env_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _make_env(args: argparse.Namespace):
-    """``(env, params)`` from ``--config``/``--system``, the explicit flags and ``--set``; config and ``make``
-    errors become ``_UsageError`` naming the flag or the dotted config path."""
+    """``(env, params, config)`` from ``--config``/``--system``, the explicit flags and ``--set``; config and
+    ``make`` errors become ``_UsageError`` naming the flag or the dotted config path."""
     import yaml
 
     from scg_jax.config import load_config, make_from_config
@@ -134,7 +134,8 @@ def _make_env(args: argparse.Namespace):
     source = args.config if args.config is not None else {"env": {"system": args.system}}
     try:
         cfg = load_config(source, overrides + list(args.set))
-        return make_from_config(cfg)
+        env, params = make_from_config(cfg)
+        return env, params, cfg
     except (ValueError, OSError) as error:
         message = str(error)
         option = message.split(":", 1)[0].removeprefix("env.")
@@ -227,11 +228,12 @@ def _run_rollout(args: argparse.Namespace, console) -> int:
     import jax
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
+    from scg_jax.config import dump_config
     from scg_jax.metrics import summarize, trajectory_metrics
     from scg_jax.plotting import plot_rollout
     from scg_jax.rollout import make_rollout
 
-    env, params = _make_env(args)
+    env, params, cfg = _make_env(args)
     out = args.out or Path("results", "rollout", f"{env.system.name}-{env.task}-{args.policy}-seed{args.seed}")
 
     with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=console) as bar:
@@ -257,13 +259,15 @@ def _run_rollout(args: argparse.Namespace, console) -> int:
         summary = summarize(per_copy)
         steps_per_s = args.num_envs * env.num_steps / run_s
         data = _rollout_data(env, params, traj)
+        data["config"] = np.asarray(dump_config(cfg))  # the resolved config: rebuilds this exact env
         out.mkdir(parents=True, exist_ok=True)
         write_atomic(out / "rollout.npz", lambda file: np.savez_compressed(file, **data))
         record = {
             "command": "rollout",
             "system": env.system.name,
             "task": env.task,
-            "config": None if args.config is None else str(args.config),
+            "config_file": None if args.config is None else str(args.config),
+            "config": dump_config(cfg),
             "overrides": list(args.set),
             "policy": args.policy,
             "num_envs": args.num_envs,

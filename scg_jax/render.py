@@ -1038,10 +1038,9 @@ def animate(
 def animate_rollout_file(npz_path, out_path, env=None, params=None, **kwargs) -> Path:
     """Animate the ``rollout.npz`` written by ``scg-jax rollout``.
 
-    The env is rebuilt as ``scg_jax.make(system, task)`` from the file's ``system`` and ``task`` keys unless
-    ``env`` is given; the file's ``x_ref`` and ``dt`` are used, so a rollout made with another trajectory or
-    control frequency is still drawn as it ran. The file does not record constraints: pass the rollout's own
-    ``env`` (and ``params``) to draw them.
+    Unless ``env`` is given, the env is rebuilt from the file's ``config`` (the resolved YAML config the CLI
+    stores, so constraints and bounds are drawn as they were), or for older files as ``scg_jax.make(system,
+    task)``; the file's ``x_ref`` and ``dt`` are used either way.
 
     Args:
         npz_path: the ``.npz``. out_path: ``.gif`` or ``.mp4``. kwargs: as for ``animate``.
@@ -1051,5 +1050,9 @@ def animate_rollout_file(npz_path, out_path, env=None, params=None, **kwargs) ->
     if env is None:
         import scg_jax
 
-        env = scg_jax.make(str(data["system"]), str(data["task"]))
+        if "config" in data:
+            env, file_params = scg_jax.make_from_config(scg_jax.load_config(str(data["config"])))
+            params = file_params if params is None else params
+        else:
+            env = scg_jax.make(str(data["system"]), str(data["task"]))
     return animate(env, data, out_path, params=params, **kwargs)

@@ -57,6 +57,12 @@ def test_config_and_set_overrides_reach_the_env(tmp_path):
         "4",
     )
     assert metrics["env"]["ctrl_freq"] == 15 and data["x"].shape[0] == 30
+    # The resolved config is stored and rebuilds the same env (constraint included).
+    import scg_jax
+
+    env, params = scg_jax.make_from_config(scg_jax.load_config(str(data["config"])))
+    assert env.ctrl_freq == 15 and env.num_steps == 30 and len(env.constraint_specs) == 1
+    np.testing.assert_allclose(np.asarray(params.constraints[0].b), [0.01, 0.01])
     assert metrics["overrides"][0] == "env.episode_len_sec=2"
     # An LQR force bounded by 1 cN cannot hold; every copy violates the input constraint at some step.
     assert np.all(np.asarray(metrics["per_copy"]["violation_steps"]) > 0)
