@@ -16,18 +16,22 @@ from scg_jax.env import Env, EnvParams, EnvState, StepOutput
 
 Policy = Callable[[Any, EnvState, EnvParams, Any], Any]
 
+# Env.step draws step k's noise from fold_in(episode key, k); the next episode's reset key comes from an index
+# the step counter never reaches, so no key serves twice (split(key)[0] would equal fold_in(key, 0)).
+RESET_STREAM = 2**32 - 1
+
 
 def auto_reset_step(env: Env, state: EnvState, action, params: EnvParams) -> StepOutput:
     """``env.step``, then a fresh episode wherever it terminated or was truncated.
 
-    The reset key is split from the finished episode's own key, so the whole sequence of episodes is still
-    determined by the first reset key. The observation of the finished step is kept as
+    The reset key is ``fold_in(finished episode's key, RESET_STREAM)``, so the whole sequence of episodes is
+    still determined by the first reset key, and it is never one of the keys the steps drew noise from. The observation of the finished step is kept as
     ``info["final_obs"]`` (equal to ``obs`` where no reset happened); ``terminated``, ``truncated``,
     ``reward`` and the rest of ``info`` describe the finished step.
     """
     out = env.step(state, action, params)
     done = out.terminated | out.truncated
-    reset_key, _ = jax.random.split(out.state.key)
+    reset_key = jax.random.fold_in(out.state.key, RESET_STREAM)
     reset_obs, reset_state = env.reset(reset_key, params)
     obs = jnp.where(done, reset_obs, out.obs)
     next_state = jax.tree.map(lambda fresh, old: jnp.where(done, fresh, old), reset_state, out.state)

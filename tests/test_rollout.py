@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import scg_jax
+from scg_jax.rollout import RESET_STREAM
 
 
 def _hover(obs, state, params, key):
@@ -60,3 +61,14 @@ def test_batched_params_sweep_over_copies():
     # Nominal hover thrust on a lighter (heavier) plant accelerates it up (down): a = T / m - g, exactly.
     expected = (0.027 * 9.8 / np.asarray(masses) - 9.8) * 10 * env.dt
     np.testing.assert_allclose(z_dot, expected, rtol=1e-4, atol=1e-6)
+
+
+def test_the_reset_key_of_the_next_episode_is_none_of_the_step_noise_keys():
+    env = scg_jax.make("cartpole", episode_len_sec=0.1)
+    key = jax.random.key(0)
+    _, state = env.reset(key, env.default_params)
+    reset_key = jax.random.key_data(jax.random.fold_in(state.key, RESET_STREAM))
+    noise_keys = jax.vmap(lambda k: jax.random.key_data(jax.random.fold_in(state.key, k)))(jnp.arange(1000))
+    assert not np.any(np.all(np.asarray(noise_keys) == np.asarray(reset_key), axis=1))
+    # The old choice collided with step 0's noise key.
+    np.testing.assert_array_equal(jax.random.key_data(jax.random.split(state.key)[0]), noise_keys[0])
