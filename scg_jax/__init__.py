@@ -7,6 +7,16 @@ from scg_jax.systems import SYSTEMS
 
 __version__ = "0.1.0"
 
+# Gymnasium ids (scg_jax/CartPole-v0, ...), registered only when the optional `gym` extra is installed.
+try:
+    import gymnasium as _gymnasium  # noqa: F401
+except ImportError:
+    pass
+else:
+    from scg_jax.adapters import register_gymnasium_envs as _register_gymnasium_envs
+
+    _register_gymnasium_envs()
+
 __all__ = [
     "SYSTEMS",
     "Config",

@@ -21,17 +21,22 @@ Policy = Callable[[Any, EnvState, EnvParams, Any], Any]
 RESET_STREAM = 2**32 - 1
 
 
+def next_reset_key(episode_key):
+    """The reset key of the episode that follows the one whose ``EnvState.key`` is ``episode_key``."""
+    return jax.random.fold_in(episode_key, RESET_STREAM)
+
+
 def auto_reset_step(env: Env, state: EnvState, action, params: EnvParams) -> StepOutput:
     """``env.step``, then a fresh episode wherever it terminated or was truncated.
 
-    The reset key is ``fold_in(finished episode's key, RESET_STREAM)``, so the whole sequence of episodes is
-    still determined by the first reset key, and it is never one of the keys the steps drew noise from. The observation of the finished step is kept as
-    ``info["final_obs"]`` (equal to ``obs`` where no reset happened); ``terminated``, ``truncated``,
-    ``reward`` and the rest of ``info`` describe the finished step.
+    The reset key is ``next_reset_key(finished episode's key)``, so the whole sequence of episodes is still
+    determined by the first reset key, and it is never one of the keys the steps drew noise from. The
+    observation of the finished step is kept as ``info["final_obs"]`` (equal to ``obs`` where no reset
+    happened); ``terminated``, ``truncated``, ``reward`` and the rest of ``info`` describe the finished step.
     """
     out = env.step(state, action, params)
     done = out.terminated | out.truncated
-    reset_key = jax.random.fold_in(out.state.key, RESET_STREAM)
+    reset_key = next_reset_key(out.state.key)
     reset_obs, reset_state = env.reset(reset_key, params)
     obs = jnp.where(done, reset_obs, out.obs)
     next_state = jax.tree.map(lambda fresh, old: jnp.where(done, fresh, old), reset_state, out.state)
