@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import os
 import platform
 import time
 from pathlib import Path
@@ -41,6 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from machine import cpu_count, load_average  # benchmarks/machine.py, beside this script
 from rich import box
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -80,20 +80,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     if not -1.0 <= args.action <= 1.0:
         parser.error("--action: a normalized action in [-1, 1]")
     return args
-
-
-def _cpu_count() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
-def _load() -> list[float] | None:
-    try:
-        return [round(v, 2) for v in os.getloadavg()]
-    except (AttributeError, OSError):
-        return None
 
 
 # --------------------------------------------------------------------------------------------- the three loops
@@ -186,7 +172,7 @@ def main(argv=None) -> int:
         console = Console(width=max(console.width, 150))
     env_id = GYMNASIUM_IDS[args.system]
     dev = jax.devices()[0]
-    cores = _cpu_count()
+    cores = cpu_count()
     meta = {
         "benchmark": "gym_throughput",
         "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
@@ -197,7 +183,7 @@ def main(argv=None) -> int:
         "machine": platform.platform(),
         "device": {"platform": dev.platform, "device_kind": dev.device_kind, "count": jax.device_count()},
         "cpu_count": cores,
-        "load_average_start": _load(),
+        "load_average_start": load_average(),
         "config": {
             "env_id": env_id,
             "num_envs": args.num_envs,
@@ -282,7 +268,7 @@ def main(argv=None) -> int:
     ]
     vector_episodes = sum(loop.episodes for (name, _), loop in loops.items() if name == "vector")
     single_episodes = loops[("single", 1)].episodes
-    meta["load_average_end"] = _load()
+    meta["load_average_end"] = load_average()
     meta["episodes_ended"] = {"vector": vector_episodes, "single": single_episodes}
 
     table = Table(

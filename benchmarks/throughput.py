@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from machine import cpu_count, load_average  # benchmarks/machine.py, beside this script
 from rich import box
 from rich.console import Console
 from rich.table import Table
@@ -344,20 +345,6 @@ def print_report(console: Console, rows: list[dict], targets: list[dict], meta: 
         console.print(f"  [{style}]{t['status']:<4}[/{style}]  {t['target']}: {t['detail']}", highlight=False)
 
 
-def _cpu_count() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
-def _load() -> list[float] | None:
-    try:
-        return [round(v, 2) for v in os.getloadavg()]
-    except (AttributeError, OSError):
-        return None
-
-
 # --------------------------------------------------------------------------------------------- main
 def main(argv=None) -> int:
     args = parse_args(argv)
@@ -371,7 +358,7 @@ def main(argv=None) -> int:
     started = time.perf_counter()
     dev = jax.devices()[0]
     device = {"platform": dev.platform, "device_kind": dev.device_kind, "count": jax.device_count()}
-    cores = _cpu_count()
+    cores = cpu_count()
     meta = {
         "benchmark": "throughput",
         "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
@@ -383,7 +370,7 @@ def main(argv=None) -> int:
         "device": device,
         "cpu_count": cores,
         "cpu_count_total": os.cpu_count(),
-        "load_average_start": _load(),
+        "load_average_start": load_average(),
         "config": {
             "task": "stabilization",
             "action": "constant u_ref = system.equilibrium_input(params.physics), physical",
@@ -470,7 +457,7 @@ def main(argv=None) -> int:
             rows.append(row)
 
     targets = _targets(rows, device, cores)
-    meta["load_average_end"] = _load()
+    meta["load_average_end"] = load_average()
     meta["total_runtime_s"] = time.perf_counter() - started
     console.print()
     print_report(console, rows, targets, meta)

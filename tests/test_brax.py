@@ -278,6 +278,17 @@ def _learning_env():
     return env, BraxEnv(env)
 
 
+def _recorder():
+    """A brax ``progress_fn`` recording (step, eval reward, eval cost), and the list it appends to."""
+    curve = []
+
+    def progress(step, metrics):
+        assert "eval/episode_cost" in metrics and "eval/episode_mse" in metrics
+        curve.append((step, float(metrics["eval/episode_reward"]), float(metrics["eval/episode_cost"])))
+
+    return curve, progress
+
+
 def _check_learning(curve):
     first, last = curve[0], curve[-1]
     print("eval curve (step, episode_reward, episode_cost):", [(s, round(r, 2), round(c, 2)) for s, r, c in curve])
@@ -292,11 +303,7 @@ def test_ppo_learns_cartpole_stabilization():
     from brax.training.agents.ppo import train as ppo
 
     env, brax_env = _learning_env()
-    curve = []
-
-    def progress(step, metrics):
-        assert "eval/episode_cost" in metrics and "eval/episode_mse" in metrics
-        curve.append((step, float(metrics["eval/episode_reward"]), float(metrics["eval/episode_cost"])))
+    curve, progress = _recorder()
 
     start = time.time()
     _, _, metrics = ppo.train(
@@ -333,11 +340,7 @@ def test_sac_learns_cartpole_stabilization():
     from brax.training.agents.sac import train as sac
 
     env, brax_env = _learning_env()
-    curve = []
-
-    def progress(step, metrics):
-        assert "eval/episode_cost" in metrics and "eval/episode_mse" in metrics
-        curve.append((step, float(metrics["eval/episode_reward"]), float(metrics["eval/episode_cost"])))
+    curve, progress = _recorder()
 
     start = time.time()
     _, _, metrics = sac.train(
