@@ -79,7 +79,9 @@ class DisturbanceState:
     start: object
 
 
-def _vector(path: str, value, dim: int) -> np.ndarray:
+def channel_vector(path: str, value, dim: int) -> np.ndarray:
+    """A number (broadcast) or ``dim`` finite values, for a per-dimension channel quantity; ValueError naming
+    ``path`` otherwise."""
     array = (
         np.broadcast_to(np.asarray(value, dtype=float), (dim,))
         if np.ndim(value) == 0
@@ -115,7 +117,7 @@ def parse_disturbance(path: str, raw: dict, channel: str, dim: int, num_steps: i
         decay=np.asarray(1.0),
         frequency=np.asarray(0.0),
     )
-    values["mask"] = _vector(f"{path}.mask", raw.get("mask", 1.0), dim)
+    values["mask"] = channel_vector(f"{path}.mask", raw.get("mask", 1.0), dim)
     random_start = False
     for key in _KEYS[kind]:
         value = raw.get(key, _DEFAULTS.get(key))
@@ -148,7 +150,7 @@ def parse_disturbance(path: str, raw: dict, channel: str, dim: int, num_steps: i
                 raise ValueError(f"{path}.frequency: expected a positive frequency in Hz, got {value!r}")
             values[key] = np.asarray(float(value))
         else:
-            values[key] = _vector(f"{path}.{key}", value, dim)
+            values[key] = channel_vector(f"{path}.{key}", value, dim)
     if kind == "white_noise" and np.any(values["std"] < 0):
         raise ValueError(f"{path}.std: must be non-negative, got {values['std'].tolist()!r}")
     if kind == "uniform" and np.any(values["low"] > values["high"]):

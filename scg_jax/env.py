@@ -715,7 +715,7 @@ def make(system: str, task: str = "stabilization", **options) -> Env:
             raise ValueError(f"adversary: expected a mapping with keys channel, scale, got {adversary!r}")
         adversary_channel = adversary.get("channel")
         _choice("adversary.channel", adversary_channel, disturbances_lib.CHANNELS)
-        adversary_scale = disturbances_lib._vector(
+        adversary_scale = disturbances_lib.channel_vector(
             "adversary.scale", adversary.get("scale", 1.0), channel_dims[adversary_channel]
         )
 
