@@ -572,13 +572,47 @@ class EnvConfig(_Section):
         return options
 
 
+def _options_mapping(value, path):
+    """A mapping of option names to plain values, checked later by the controller or trainer that reads it."""
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping):
+        raise ConfigError(path, f"expected a mapping of option names to values, got {_show(value)}")
+    for key in value:
+        if not isinstance(key, str):
+            raise ConfigError(path, f"expected option names (strings), got the key {_show(key)}")
+    return {key: _plain(item) for key, item in value.items()}
+
+
 @dataclasses.dataclass(frozen=True)
 class Config(_Section):
-    """A whole configuration file. Only ``env`` for now; other top-level keys are rejected."""
+    """A whole configuration file: the environment, and the settings of the methods run on it.
+
+    ``controllers.<name>`` holds the options of the controller ``name`` (``algorithms.CONTROLLERS``; checked when
+    the controller is built, messages name ``controllers.<name>.<key>``), ``training.<algo>`` the hyperparameters
+    of the learner ``algo`` (``ppo``, ``sac``; checked by its ``make_train``). Both default to empty (every
+    option at its default).
+    """
 
     _name: ClassVar[str] = ""
 
     env: EnvConfig = _field(_section(EnvConfig))
+    controllers: dict = _field(_optional(_mapping_of(_options_mapping, "controller names to their options")), None)
+    training: dict = _field(
+        _optional(_mapping_of(_options_mapping, "learner names (ppo, sac) to their hyperparameters")), None
+    )
+
+    def _check(self, path: str) -> None:
+        for name in ("controllers", "training"):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, {})
+
+    def to_dict(self) -> dict:
+        result = super().to_dict()
+        for name in ("controllers", "training"):
+            if not result.get(name):
+                result.pop(name, None)
+        return result
 
 
 # --------------------------------------------------------------------------------------------- overrides
