@@ -1,4 +1,4 @@
-"""Infinite-horizon discrete-time LQR gains.
+"""Infinite-horizon LQR gains and the LQR controller (``make_lqr``).
 
 Convention (used by every caller in this package): the feedback law is
 
@@ -13,8 +13,13 @@ stabilising solution of the discrete algebraic Riccati equation, so the optimal 
 
 from __future__ import annotations
 
+import dataclasses
+
+import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
+
+from algorithms.base import JaxController, option, parse_options, state_from_obs, weight_diagonal
 
 
 def _matrix(name: str, value, shape: tuple[int, int]) -> np.ndarray:
@@ -82,3 +87,95 @@ def lqr_gain_about(env, params, x0, u0) -> np.ndarray:
     lin = env.symbolic_model(params).linearize(np.asarray(x0, dtype=np.float64), np.asarray(u0, dtype=np.float64))
     K, _ = discrete_lqr_gain(lin.Ad, lin.Bd, np.asarray(params.Q), np.asarray(params.R))
     return K
+
+
+# --------------------------------------------------------------------------------------------- controller
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """Options of the LQR controller (a config file's ``controllers.lqr`` section)."""
+
+    mode: str = option(
+        "auto",
+        "linearise about the goal (one gain) or about the reference point of every step (one gain per step); "
+        "auto: goal for stabilization, reference for tracking",
+        choices=("auto", "goal", "reference"),
+    )
+    discrete: bool = option(True, "discrete LQR on (Ad, Bd) at the control period; false: continuous LQR on (A, B)")
+    q_diag: tuple | None = option(None, "diagonal state weight (nx,); default: the env's Q")
+    r_diag: tuple | None = option(None, "diagonal input weight (nu,); default: the env's R")
+
+
+def continuous_lqr_gain(A, B, Q, R) -> tuple[np.ndarray, np.ndarray]:
+    """Continuous LQR: ``K = R^-1 B^T P`` with ``P`` the stabilising solution of ``A^T P + P A - P B R^-1 B^T P + Q
+    = 0``; same sign convention as ``discrete_lqr_gain`` (``u = u_ref - K (x - x_ref)``)."""
+    A = np.asarray(A, dtype=np.float64)
+    B = np.asarray(B, dtype=np.float64)
+    nx, nu = B.shape
+    A = _matrix("A", A, (nx, nx))
+    Q = _matrix("Q", Q, (nx, nx))
+    R = _matrix("R", R, (nu, nu))
+    try:
+        P = scipy.linalg.solve_continuous_are(A, B, Q, R)
+    except (np.linalg.LinAlgError, ValueError) as error:
+        raise ValueError(f"continuous_lqr_gain: no stabilising Riccati solution ({error})") from error
+    P = 0.5 * (P + P.T)
+    return np.linalg.solve(R, B.T @ P), P
+
+
+def _weights(env, prior_params, opts: Options) -> tuple[np.ndarray, np.ndarray]:
+    Q = np.asarray(prior_params.Q, dtype=np.float64)
+    R = np.asarray(prior_params.R, dtype=np.float64)
+    if opts.q_diag is not None:
+        Q = np.diag(weight_diagonal("controllers.lqr.q_diag", opts.q_diag, (), env.nx))
+    if opts.r_diag is not None:
+        R = np.diag(weight_diagonal("controllers.lqr.r_diag", opts.r_diag, (), env.nu))
+    return Q, R
+
+
+def make_lqr(env, prior_params, options=None) -> JaxController:
+    """LQR about the goal or about the reference, from the prior model ``env.symbolic_model(prior_params)``.
+
+    The law is ``u = u_eq - K_k (x - x_ref[k])``, with ``x`` the observed state, ``u_eq`` the prior model's
+    equilibrium input (hover thrust, zero force) and ``K_k`` the gain of the linearisation about
+    ``(x_ref[k], u_eq)``; with ``mode="goal"`` one gain about the goal serves every step. The gains are computed
+    once here (float64, scipy) along the reference of ``prior_params``; ``act`` is a gather and a matrix product, so
+    it vmaps over thousands of copies. The output is not clipped: saturation is the plant's.
+
+    Args:
+        env: the environment. prior_params: ``EnvParams`` of the controller's model (e.g. ``prior_params(env,
+            params, 1.5)``); its ``Q`` and ``R`` are the default weights. options: ``Options`` fields as a mapping.
+
+    Returns:
+        A ``JaxController`` named ``"lqr"`` whose ``info`` holds the gains ``K`` ((num_gains, nu, nx) numpy).
+    """
+    opts = parse_options(Options, options, "controllers.lqr")
+    mode = opts.mode if opts.mode != "auto" else ("goal" if env.task == "stabilization" else "reference")
+    Q, R = _weights(env, prior_params, opts)
+    model = env.symbolic_model(prior_params)
+    u_eq = np.asarray(env.system.equilibrium_input(prior_params.physics), dtype=np.float64)
+    x_ref = np.asarray(model.x_ref, dtype=np.float64)
+    points = x_ref[:1] if mode == "goal" else x_ref
+    gains = []
+    for x0 in points:
+        lin = model.linearize(x0, u_eq)
+        if opts.discrete:
+            K, _ = discrete_lqr_gain(lin.Ad, lin.Bd, Q, R)
+        else:
+            K, _ = continuous_lqr_gain(lin.A, lin.B, Q, R)
+        gains.append(K)
+    gains = np.stack(gains)
+    dtype = jnp.zeros(()).dtype
+    K_all = jnp.asarray(gains, dtype=dtype)
+    u_eq_j = jnp.asarray(u_eq, dtype=dtype)
+    last = gains.shape[0] - 1
+
+    def reset(key, reference):
+        return ()
+
+    def act(ctrl_state, obs, step, reference):
+        k = jnp.clip(step, 0, reference.x_ref.shape[0] - 1)
+        K = K_all[jnp.minimum(k, last)]
+        x = state_from_obs(env, obs)
+        return u_eq_j - K @ (x - reference.x_ref[k]), ctrl_state
+
+    return JaxController("lqr", reset, act, info={"K": gains, "mode": mode, "discrete": opts.discrete})

@@ -323,10 +323,21 @@ def _rollout_data(env, params, traj) -> dict[str, np.ndarray]:
         "system": np.asarray(env.system.name),
         "task": np.asarray(env.task),
     }
+    data.update(_plot_extras(env, params))
+    return data
+
+
+def _plot_extras(env, params) -> dict[str, np.ndarray]:
+    """The plane of a quadrotor's path and the constraint boxes, for ``plot_rollout``."""
+    from scg_jax.constraints import box_bounds
+
+    data = {}
     plane = _plane_indices(env)
     if plane is not None:
         data["plane"] = np.asarray(plane[0])
         data["plane_indices"] = np.asarray(plane[1], dtype=np.int64)
+    x_low, x_high, u_low, u_high = box_bounds(env.constraint_specs, params.constraints, env.nx, env.nu)
+    data.update(x_low=x_low, x_high=x_high, u_low=u_low, u_high=u_high)
     return data
 
 
@@ -348,9 +359,248 @@ def _metrics_table(args, env, summary: dict, compile_s: float, run_s: float, ste
     return table
 
 
+# ----------------------------------------------------------------------------------------------- eval, compare
+def _add_controller_arguments(parser: argparse.ArgumentParser) -> None:
+    run = parser.add_argument_group("evaluation")
+    run.add_argument(
+        "--prior-scale",
+        type=float,
+        default=1.0,
+        help="the controller's model has every inertial parameter times this factor (default: 1, the true plant)",
+    )
+    run.add_argument("--episodes", type=_positive_int, default=16, help="episodes, run in parallel (default: 16)")
+    run.add_argument("--seed", type=int, default=0, help="PRNG seed (default: 0)")
+
+
+def _add_eval_parser(subparsers) -> argparse.ArgumentParser:
+    from algorithms import CONTROLLERS
+
+    parser = subparsers.add_parser(
+        "eval",
+        help="evaluate a controller or a trained policy on N episodes and save metrics, data and a plot",
+        description=(
+            "Evaluate one controller on --episodes episodes with the paper's metrics (RMSE, its std, worst-case "
+            "RMSE as CVaR at 0.5, failure rate, steps in violation, return, length, compute time per step). The "
+            "controller's options come from the config's controllers.NAME section. Writes --out (JSON), and the "
+            "trajectories (.npz) and a plot (.png) next to it."
+        ),
+    )
+    _add_env_arguments(parser)
+    parser.add_argument(
+        "--controller",
+        required=True,
+        metavar="NAME|DIR",
+        help=f"controller name ({', '.join(CONTROLLERS)}) or the folder of a policy written by scg-jax train",
+    )
+    _add_controller_arguments(parser)
+    parser.add_argument("--out", type=Path, required=True, metavar="FILE.json", help="metrics JSON to write")
+    return parser
+
+
+def _add_compare_parser(subparsers) -> argparse.ArgumentParser:
+    from algorithms import CONTROLLERS
+
+    parser = subparsers.add_parser(
+        "compare",
+        help="evaluate several controllers on one config and print them side by side",
+        description="Evaluate each controller as scg-jax eval does, on the same episodes (same seed).",
+    )
+    _add_env_arguments(parser)
+    parser.add_argument(
+        "--controllers",
+        required=True,
+        metavar="A,B,...",
+        help=f"comma-separated controller names ({', '.join(CONTROLLERS)}) and/or policy folders",
+    )
+    _add_controller_arguments(parser)
+    parser.add_argument("--out", type=Path, metavar="FILE.json", help="write every controller's metrics here")
+    return parser
+
+
+def _build_controller(spec: str, env, params, cfg, prior_scale: float):
+    """A controller from a registered name (options from ``cfg.controllers``) or a trained policy's folder."""
+    from algorithms import CONTROLLERS, make_controller
+    from scg_jax.env import prior_params
+
+    if not (np.isfinite(prior_scale) and prior_scale > 0):
+        raise _UsageError(f"argument --prior-scale: must be a positive number, got {prior_scale!r}")
+    if spec in CONTROLLERS:
+        prior = params if prior_scale == 1.0 else prior_params(env, params, prior_scale)
+        try:
+            return make_controller(spec, env, prior, cfg.controllers.get(spec))
+        except ValueError as error:
+            raise _UsageError(str(error)) from None
+    path = Path(spec)
+    if path.is_dir():
+        from algorithms.rl.policy import load_policy
+
+        if prior_scale != 1.0:
+            raise _UsageError("argument --prior-scale: a trained policy has no model to scale; leave it at 1")
+        try:
+            return load_policy(path, env, params)
+        except (ValueError, OSError) as error:
+            raise _UsageError(f"argument --controller: {error}") from None
+    raise _UsageError(
+        f"argument --controller: {spec!r} is neither a controller name ({', '.join(CONTROLLERS)}) nor a policy "
+        "folder written by scg-jax train"
+    )
+
+
+def _evaluate(controller, env, params, args, console):
+    """``evaluate`` with a spinner (JAX controllers: compile and run) or a progress bar (host controllers)."""
+    import contextlib
+
+    import jax
+
+    from algorithms.evaluation import evaluate
+
+    waiting = (
+        console.status(f"compiling and running {controller.name} on {args.episodes} episodes")
+        if controller.is_jax
+        else contextlib.nullcontext()
+    )
+    with waiting:
+        return evaluate(
+            env, params, controller, jax.random.key(args.seed), args.episodes, progress=not controller.is_jax
+        )
+
+
+def _format_metric(summary: dict, name: str, spread: str | None = None, digits: int = 4) -> str:
+    value = summary[name]
+    if value is None:
+        return "-"
+    text = f"{value:.{digits}g}" if abs(value) < 1e-3 and value != 0 else f"{value:.{digits}f}"
+    if spread is not None and summary.get(spread) is not None:
+        text += f" ± {summary[spread]:.{digits}f}"
+    return text
+
+
+_TABLE_ROWS = (
+    ("rmse (m)", "rmse", "rmse_std", 4),
+    ("worst-case rmse, CVaR 0.5 (m)", "worst_case_rmse_at_0.5", None, 4),
+    ("failure rate", "failure_rate", None, 3),
+    ("steps in violation", "constraint_violation_steps", "constraint_violation_steps_std", 1),
+    ("return", "return", "return_std", 3),
+    ("length (steps)", "length", None, 1),
+    ("compute time per step (ms)", "compute_time_per_step_ms", None, 4),
+)
+
+
+def _summary_table(title: str, summaries: dict[str, dict]):
+    from rich.table import Table
+
+    table = Table(title=title, min_width=len(title) + 4)
+    table.add_column("metric")
+    for name in summaries:
+        table.add_column(name, justify="right")
+    for label, key, spread, digits in _TABLE_ROWS:
+        cells = []
+        for summary in summaries.values():
+            summary = dict(summary)
+            per_step = summary.get("compute_time_per_step_s")
+            summary["compute_time_per_step_ms"] = None if per_step is None else 1e3 * per_step
+            cells.append(_format_metric(summary, key, spread, digits))
+        table.add_row(label, *cells)
+    return table
+
+
+def _evaluation_extra(env, cfg, args, controller) -> dict:
+    from scg_jax.config import dump_config
+
+    return {
+        "system": env.system.name,
+        "task": env.task,
+        "config_file": None if args.config is None else str(args.config),
+        "config": dump_config(cfg),
+        "overrides": list(args.set),
+        "prior_scale": args.prior_scale,
+        "seed": args.seed,
+        "num_steps": env.num_steps,
+        "controller_info": _jsonable(getattr(controller, "info", {})),
+    }
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray | np.generic):
+        return value.tolist()
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    return str(value)
+
+
+def _run_eval(args: argparse.Namespace, console) -> int:
+    from algorithms.evaluation import evaluation_record
+    from scg_jax.plotting import plot_rollout
+
+    env, params, cfg = _make_env(args)
+    if args.out.suffix != ".json":
+        raise _UsageError(f"argument --out: expected a .json file name, got {str(args.out)!r}")
+    controller = _build_controller(args.controller, env, params, cfg, args.prior_scale)
+    evaluation = _evaluate(controller, env, params, args, console)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    npz_path, png_path = args.out.with_suffix(".npz"), args.out.with_suffix(".png")
+    data = {
+        "t": env.dt * np.arange(env.num_steps, dtype=np.float64),
+        "dt": np.float64(env.dt),
+        **{name: value for name, value in evaluation.trajectory.items() if name not in ("x", "x_ref")},
+        "x": evaluation.trajectory["x"][:-1],
+        "x_final": evaluation.trajectory["x"][-1],
+        # The plot draws one reference; copies share it unless the params were a sweep.
+        "x_ref": evaluation.trajectory["x_ref"][:, 0],
+        "state_names": np.asarray(env.system.state_names),
+        "input_names": np.asarray(env.system.input_names),
+        "system": np.asarray(env.system.name),
+        "task": np.asarray(env.task),
+        "controller": np.asarray(controller.name),
+        **_plot_extras(env, params),
+    }
+    write_atomic(npz_path, lambda file: np.savez_compressed(file, **data))
+    record = evaluation_record(evaluation, _evaluation_extra(env, cfg, args, controller))
+    write_json(args.out, record)
+    plot_rollout(npz_path, png_path)
+    title = f"{env.system.name} {env.task} | {controller.name} | {args.episodes} episodes x {env.num_steps} steps"
+    console.print(_summary_table(title, {controller.name: evaluation.summary}))
+    console.print(f"wrote {args.out}, {npz_path}, {png_path}")
+    return 0
+
+
+def _run_compare(args: argparse.Namespace, console) -> int:
+    from algorithms.evaluation import evaluation_record
+
+    env, params, cfg = _make_env(args)
+    specs = [item.strip() for item in args.controllers.split(",") if item.strip()]
+    if not specs:
+        raise _UsageError("argument --controllers: expected at least one controller name or policy folder")
+    if len(set(specs)) != len(specs):
+        raise _UsageError(f"argument --controllers: a controller is listed twice: {args.controllers}")
+    if args.out is not None and args.out.suffix != ".json":
+        raise _UsageError(f"argument --out: expected a .json file name, got {str(args.out)!r}")
+    controllers = [_build_controller(spec, env, params, cfg, args.prior_scale) for spec in specs]
+    records, summaries = {}, {}
+    for spec, controller in zip(specs, controllers, strict=True):
+        label = controller.name if spec == controller.name else f"{controller.name} ({Path(spec).name})"
+        evaluation = _evaluate(controller, env, params, args, console)
+        summaries[label] = evaluation.summary
+        records[label] = evaluation_record(evaluation, {"controller_info": _jsonable(getattr(controller, "info", {}))})
+    title = f"{env.system.name} {env.task} | {args.episodes} episodes x {env.num_steps} steps | seed {args.seed}"
+    console.print(_summary_table(title, summaries))
+    if args.out is not None:
+        extra = _evaluation_extra(env, cfg, args, controllers[0])
+        extra.pop("controller_info")
+        write_json(args.out, {**extra, "controllers": records})
+        console.print(f"wrote {args.out}")
+    return 0
+
+
 # ----------------------------------------------------------------------------------------------- entry point
 _SUBCOMMANDS: dict[str, tuple[Callable, Callable]] = {
     "rollout": (_add_rollout_parser, _run_rollout),
+    "eval": (_add_eval_parser, _run_eval),
+    "compare": (_add_compare_parser, _run_compare),
 }
 
 

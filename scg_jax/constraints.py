@@ -190,3 +190,37 @@ def violated(specs, params_list, values):
         masks.append(rows >= params.tolerance if spec.strict else rows > params.tolerance)
         start += spec.num_rows
     return jnp.concatenate(masks)
+
+
+def box_bounds(specs, values, nx: int, nu: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The per-coordinate bounds implied by the single-variable rows of linear constraints (for plots and reports).
+
+    A row ``a z_j - b <= 0`` with one non-zero ``a`` is ``z_j <= b / a`` (``a > 0``) or ``z_j >= b / a`` (``a < 0``);
+    rows over several coordinates and quadratic constraints are not boxes and are left out. The tightest bound
+    per coordinate wins. ``input_and_state`` constraints act on ``[x; u]``.
+
+    Args:
+        specs: the env's ``constraint_specs``. values: ``params.constraints`` (unbatched). nx, nu: sizes.
+
+    Returns:
+        ``(x_low, x_high, u_low, u_high)`` float64 arrays, ``-inf`` / ``+inf`` where unbounded.
+    """
+    low = np.full(nx + nu, -np.inf)
+    high = np.full(nx + nu, np.inf)
+    for spec, value in zip(specs, values, strict=True):
+        if spec.form != "linear":
+            continue
+        offset = nx if spec.on == "input" else 0
+        A = np.asarray(value.A, dtype=np.float64)
+        b = np.asarray(value.b, dtype=np.float64)
+        for row, rhs in zip(A, b, strict=True):
+            nonzero = np.flatnonzero(row)
+            if nonzero.size != 1:
+                continue
+            j = offset + spec.active_dims[nonzero[0]]
+            bound = rhs / row[nonzero[0]]
+            if row[nonzero[0]] > 0:
+                high[j] = min(high[j], bound)
+            else:
+                low[j] = max(low[j], bound)
+    return low[:nx], high[:nx], low[nx:], high[nx:]

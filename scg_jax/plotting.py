@@ -10,6 +10,10 @@ Keys read (T control steps, N copies):
 - ``state_names`` (nx,), ``system``, ``task``.
 - ``plane`` ("xz", ...) and ``plane_indices`` (2,), optional: the state indices of the position coordinates along
   the plane's two axes; when present, a spatial subplot of the path in that plane is added.
+- ``x_low``, ``x_high`` (nx,), optional: constraint bounds of each state coordinate (``+-inf`` where none), drawn
+  as red dotted lines (``scg_jax.constraints.box_bounds``).
+- ``u`` (T, N, nu), ``input_names`` (nu,), optional: the applied inputs, one more subplot each, with the input
+  bounds ``u_low``, ``u_high`` (nu,) when present.
 """
 
 from __future__ import annotations
@@ -81,7 +85,9 @@ def plot_rollout(data, png_path, max_copies: int = 8) -> Figure:
     ref_times = times[0] + (times[1] - times[0] if len(times) > 1 else 1.0) * np.arange(x_ref.shape[0])
 
     spatial = "plane_indices" in data
-    num_panels = nx + int(spatial)
+    u = np.asarray(data["u"], dtype=np.float64) if "u" in data else None
+    nu = 0 if u is None else u.shape[2]
+    num_panels = nx + nu + int(spatial)
     ncols = 2 if num_panels <= 4 else 3 if num_panels <= 9 else 4
     nrows = math.ceil(num_panels / ncols)
     fig = Figure(figsize=(4.2 * ncols, 2.8 * nrows), layout="constrained")
@@ -96,12 +102,28 @@ def plot_rollout(data, png_path, max_copies: int = 8) -> Figure:
             if ended_early[i]:
                 ax.plot(times[length[i]], x[length[i], i, j], "x", color=colors[i], ms=5)
         ax.plot(ref_times, x_ref[:, j], "k--", lw=1.2, label="reference")
+        _draw_bounds(ax, data, "x", j)
         ax.set_title(names[j], fontsize=10)
         ax.set_xlabel("t [s]")
         ax.grid(alpha=0.3)
 
+    if u is not None:
+        input_names = [str(n) for n in np.asarray(data.get("input_names", [f"u{j}" for j in range(nu)])).tolist()]
+        step_times = times[:-1]
+        # An input after the episode's end is not part of it; blank it like the states.
+        after_end = np.arange(u.shape[0])[:, None] >= length[None, :]
+        u = np.where(after_end[..., None], np.nan, u)
+        for j in range(nu):
+            ax = axes[nx + j]
+            for i in range(shown):
+                ax.step(step_times[: u.shape[0]], u[:, i, j], where="post", color=colors[i], lw=0.8, alpha=0.85)
+            _draw_bounds(ax, data, "u", j)
+            ax.set_title(f"{input_names[j]} (applied)", fontsize=10)
+            ax.set_xlabel("t [s]")
+            ax.grid(alpha=0.3)
+
     if spatial:
-        ax = axes[nx]
+        ax = axes[nx + nu]
         ia, ib = (int(i) for i in np.asarray(data["plane_indices"]))
         plane = str(data.get("plane", f"{names[ia]}{names[ib]}"))
         for i in range(shown):
@@ -120,11 +142,21 @@ def plot_rollout(data, png_path, max_copies: int = 8) -> Figure:
         ax.set_visible(False)
     fig.suptitle(
         f"{data.get('system', '')} {data.get('task', '')}: {shown} of {num_envs} copies "
-        f"(x: terminated early, dashed: reference)",
+        f"(x: terminated early, dashed: reference, red dotted: constraint bounds)",
         fontsize=11,
     )
     _save_png(fig, Path(png_path))
     return fig
+
+
+def _draw_bounds(ax, data: dict, prefix: str, j: int) -> None:
+    """Red dotted lines at the finite constraint bounds ``<prefix>_low[j]`` and ``<prefix>_high[j]``."""
+    for side in ("low", "high"):
+        name = f"{prefix}_{side}"
+        if name in data:
+            bound = float(np.asarray(data[name], dtype=np.float64)[j])
+            if np.isfinite(bound):
+                ax.axhline(bound, color="red", ls=":", lw=1.0)
 
 
 def _save_png(fig: Figure, path: Path) -> None:

@@ -1,0 +1,333 @@
+"""The one evaluation harness: every method, learned or not, is run and scored the same way.
+
+``evaluate(env, params, controller, key, num_episodes)`` runs ``num_episodes`` copies of the env (one episode each,
+no auto-reset) in closed loop with the controller and scores each copy's episode with ``scg_jax.metrics``:
+
+- JAX controllers (``controller.is_jax``): reset, control and step of all copies are one ``jax.jit``-ed
+  ``vmap`` of a ``lax.scan`` over the episode.
+- Host controllers (CasADi/IPOPT): the copies step together through a jitted, vmapped ``env.step`` while the
+  controller is called once per copy per step, on the host; a copy whose episode ended is no longer asked.
+
+Copy ``i`` uses ``split(key, num_episodes)[i]``, itself split into the env's reset key and the controller's key, in
+both paths, so a JAX and a host controller see the same initial states and disturbances for the same key.
+
+Compute time per step (``compute_time_per_step_s``) is the controller's time per copy and control step:
+
+- host controllers: the median wall time of one ``act`` call;
+- JAX controllers: the controller alone is replayed, jitted and vmapped, over the observations recorded in the
+  rollout (the same computation, since a controller is deterministic given its observations), and the wall time
+  of that replay after compilation is divided by ``num_steps * num_episodes``: amortised over the batch, which is
+  how a batched controller is used. ``compute_time_per_batch_step_s`` is the same time divided by ``num_steps``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from algorithms.base import Reference
+from scg_jax import metrics as metrics_lib
+
+# The keys of the JSON the CLI writes, in the paper's order: summary name -> metrics.summarize name.
+SUMMARY_KEYS = {
+    "rmse": "rmse_mean",
+    "rmse_std": "rmse_std",
+    "worst_case_rmse_at_0.5": "worst_case_rmse_at_0.5",
+    "failure_rate": "failure_rate",
+    "constraint_violation_steps": "violation_steps_mean",
+    "constraint_violation_steps_std": "violation_steps_std",
+    "return": "return_mean",
+    "return_std": "return_std",
+    "length": "length_mean",
+    "length_std": "length_std",
+    "crash_rate": "crash_rate",
+}
+
+_INFO_KEYS = ("u_cmd", "u", "mse", "out_of_bounds", "nonfinite", "constraint_values")
+
+
+class Evaluation(NamedTuple):
+    """What ``evaluate`` returns; all numpy.
+
+    Attributes:
+        controller: the controller's name.
+        summary: plain floats: ``rmse`` (mean over episodes of the per-episode RMSE of the ``mse_weight``-weighted
+            tracking error, m with the default weights), ``rmse_std``, ``worst_case_rmse_at_0.5`` (CVaR at 0.5),
+            ``failure_rate`` (episodes with any constraint violation or a crash), ``constraint_violation_steps``
+            (mean steps in violation per episode) and its ``_std``, ``return``, ``return_std``, ``length``,
+            ``length_std`` (control steps), ``crash_rate``, ``compute_time_per_step_s``,
+            ``compute_time_per_batch_step_s`` (JAX controllers; ``None`` for host ones), ``num_episodes``.
+        per_episode: ``scg_jax.metrics.episode_metrics`` of each episode, (num_episodes,) arrays.
+        trajectory: ``x`` (T + 1, N, nx) states from reset to the last step, ``x_ref`` (T + 1, N, nx), ``obs``
+            (T, N, obs), ``u_cmd`` and ``u`` (T, N, nu) commanded and applied inputs (N), ``reward``, ``cost``,
+            ``terminated``, ``truncated``, ``mse``, ``out_of_bounds``, ``nonfinite`` (T, N) and
+            ``constraint_values`` (T, N, rows). Rows after a copy's episode ended are the plant running on (JAX
+            controllers) or repeat the last input (host controllers); the metrics ignore them.
+        timing: ``run_s`` (wall time of the closed loop, compile excluded for JAX controllers), ``compile_s``.
+    """
+
+    controller: str
+    summary: dict
+    per_episode: dict
+    trajectory: dict
+    timing: dict
+
+
+def _copy_keys(key, num_episodes: int):
+    keys = jax.random.split(key, num_episodes)
+    both = jax.vmap(jax.random.split)(keys)
+    return both[:, 0], both[:, 1]
+
+
+def _params_axis(batched_params: bool):
+    return 0 if batched_params else None
+
+
+def _check(env, params, controller, num_episodes) -> int:
+    for name in ("name", "is_jax", "reset", "act"):
+        if not hasattr(controller, name):
+            raise TypeError(f"controller: missing {name!r}; see algorithms.base.Controller")
+    if isinstance(num_episodes, bool) or int(num_episodes) != num_episodes or num_episodes < 1:
+        raise ValueError(f"num_episodes: must be a positive integer, got {num_episodes!r}")
+    return int(num_episodes)
+
+
+# --------------------------------------------------------------------------------------------- JAX path
+def _closed_loop_fn(env, controller):
+    """One copy's episode: ``(env_key, ctrl_key, params) -> records`` (leaves (T, ...)) and extras."""
+
+    def one_copy(env_key, ctrl_key, params):
+        obs, state = env.reset(env_key, params)
+        reference = Reference(*env.reference(params))
+        ctrl_state = controller.reset(ctrl_key, reference)
+
+        def body(carry, _):
+            obs, state, ctrl_state = carry
+            u, ctrl_state = controller.act(ctrl_state, obs, state.step, reference)
+            out = env.step(state, env.input_to_action(u, params), params)
+            record = {
+                "obs": obs,
+                "x": state.x,
+                "reward": out.reward,
+                "cost": out.cost,
+                "terminated": out.terminated,
+                "truncated": out.truncated,
+                **{name: out.info[name] for name in _INFO_KEYS},
+            }
+            return (out.obs, out.state, ctrl_state), record
+
+        (_, final_state, _), records = jax.lax.scan(body, (obs, state, ctrl_state), None, length=env.num_steps)
+        return records, final_state.x, reference.x_ref
+
+    return one_copy
+
+
+def _replay_fn(env, controller):
+    """The controller alone over recorded observations of one copy (for timing)."""
+
+    def replay(ctrl_key, obs_seq, params):
+        reference = Reference(*env.reference(params))
+        ctrl_state = controller.reset(ctrl_key, reference)
+
+        def body(ctrl_state, inputs):
+            obs, step = inputs
+            u, ctrl_state = controller.act(ctrl_state, obs, step, reference)
+            return ctrl_state, u
+
+        steps = jnp.arange(obs_seq.shape[0], dtype=jnp.int32)
+        _, u = jax.lax.scan(body, ctrl_state, (obs_seq, steps))
+        return u
+
+    return replay
+
+
+def _evaluate_jax(env, params, controller, key, num_episodes, batched_params, measure_time):
+    env_keys, ctrl_keys = _copy_keys(key, num_episodes)
+    axis = _params_axis(batched_params)
+    loop = jax.jit(jax.vmap(_closed_loop_fn(env, controller), in_axes=(0, 0, axis)))
+    start = time.perf_counter()
+    compiled = loop.lower(env_keys, ctrl_keys, params).compile()
+    compile_s = time.perf_counter() - start
+    start = time.perf_counter()
+    records, x_final, x_ref = jax.block_until_ready(compiled(env_keys, ctrl_keys, params))
+    run_s = time.perf_counter() - start
+
+    timing = {"compile_s": compile_s, "run_s": run_s}
+    per_step = per_batch_step = None
+    if measure_time:
+        replay = jax.jit(jax.vmap(_replay_fn(env, controller), in_axes=(0, 0, axis)))
+        obs = records["obs"]
+        replay_compiled = replay.lower(ctrl_keys, obs, params).compile()
+        jax.block_until_ready(replay_compiled(ctrl_keys, obs, params))
+        start = time.perf_counter()
+        jax.block_until_ready(replay_compiled(ctrl_keys, obs, params))
+        replay_s = time.perf_counter() - start
+        per_batch_step = replay_s / env.num_steps
+        per_step = per_batch_step / num_episodes
+        timing["controller_replay_s"] = replay_s
+
+    # vmap puts the copy axis first; the metrics and plots are time-major like scg_jax.Trajectory.
+    trajectory = {name: np.swapaxes(np.asarray(value), 0, 1) for name, value in records.items()}
+    x = np.concatenate([trajectory["x"], np.asarray(x_final)[None]], axis=0)
+    trajectory["x"] = x
+    trajectory["x_ref"] = np.swapaxes(np.asarray(x_ref), 0, 1)
+    return trajectory, timing, per_step, per_batch_step
+
+
+# --------------------------------------------------------------------------------------------- host path
+def _evaluate_host(env, params, controller, key, num_episodes, batched_params, progress):
+    env_keys, ctrl_keys = _copy_keys(key, num_episodes)
+    axis = _params_axis(batched_params)
+    reset = jax.jit(jax.vmap(env.reset, in_axes=(0, axis)))
+
+    def step_one(state, u, params):
+        out = env.step(state, env.input_to_action(u, params), params)
+        info = {name: out.info[name] for name in _INFO_KEYS}
+        return out.obs, out.state, out.reward, out.cost, out.terminated, out.truncated, info
+
+    step = jax.jit(jax.vmap(step_one, in_axes=(0, 0, axis)))
+    reference_fn = jax.jit(jax.vmap(env.reference, in_axes=(axis,)) if batched_params else env.reference)
+
+    start = time.perf_counter()
+    obs, state = reset(env_keys, params)
+    if batched_params:
+        x_ref_all, u_ref_all = (np.asarray(a, dtype=np.float64) for a in reference_fn(params))
+    else:
+        x_ref_one, u_ref_one = (np.asarray(a, dtype=np.float64) for a in reference_fn(params))
+        x_ref_all = np.broadcast_to(x_ref_one, (num_episodes, *x_ref_one.shape))
+        u_ref_all = np.broadcast_to(u_ref_one, (num_episodes, *u_ref_one.shape))
+    references = [Reference(x_ref_all[i], u_ref_all[i]) for i in range(num_episodes)]
+    ctrl_keys_np = list(ctrl_keys)
+    ctrl_states = [controller.reset(ctrl_keys_np[i], references[i]) for i in range(num_episodes)]
+
+    num_steps = env.num_steps
+    records: dict[str, list] = {name: [] for name in ("obs", "x", "reward", "cost", "terminated", "truncated")}
+    records.update({name: [] for name in _INFO_KEYS})
+    done = np.zeros(num_episodes, dtype=bool)
+    u_last = np.zeros((num_episodes, env.nu))
+    act_times: list[float] = []
+
+    bar = None
+    if progress:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        bar = Progress(
+            TextColumn(f"{controller.name}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(), transient=True
+        )
+        bar.start()
+        task = bar.add_task("steps", total=num_steps)
+    try:
+        for k in range(num_steps):
+            obs_np = np.asarray(obs, dtype=np.float64)
+            x_np = np.asarray(state.x)
+            for i in range(num_episodes):
+                if done[i]:
+                    continue
+                tick = time.perf_counter()
+                u_i, ctrl_states[i] = controller.act(ctrl_states[i], obs_np[i], k, references[i])
+                act_times.append(time.perf_counter() - tick)
+                u_i = np.asarray(u_i, dtype=np.float64).reshape(env.nu)
+                if not np.all(np.isfinite(u_i)):
+                    raise FloatingPointError(f"controller {controller.name!r} returned a non-finite input {u_i}")
+                u_last[i] = u_i
+            obs_next, state, reward, cost, terminated, truncated, info = step(state, jnp.asarray(u_last), params)
+            for name, value in (
+                ("obs", obs_np),
+                ("x", x_np),
+                ("reward", reward),
+                ("cost", cost),
+                ("terminated", terminated),
+                ("truncated", truncated),
+            ):
+                records[name].append(np.asarray(value))
+            for name in _INFO_KEYS:
+                records[name].append(np.asarray(info[name]))
+            obs = obs_next
+            done |= np.asarray(terminated) | np.asarray(truncated)
+            if bar is not None:
+                bar.update(task, advance=1)
+            if done.all():
+                break
+    finally:
+        if bar is not None:
+            bar.stop()
+    run_s = time.perf_counter() - start
+
+    trajectory = {name: np.stack(values) for name, values in records.items()}
+    trajectory["x"] = np.concatenate([trajectory["x"], np.asarray(state.x)[None]], axis=0)
+    trajectory["x_ref"] = np.swapaxes(x_ref_all, 0, 1)
+    per_step = float(np.median(act_times)) if act_times else None
+    timing = {"compile_s": 0.0, "run_s": run_s, "controller_calls": len(act_times)}
+    if act_times:
+        timing["controller_mean_s"] = float(np.mean(act_times))
+        timing["controller_max_s"] = float(np.max(act_times))
+    return trajectory, timing, per_step, None
+
+
+# --------------------------------------------------------------------------------------------- public
+def evaluate(
+    env,
+    params,
+    controller,
+    key,
+    num_episodes: int,
+    *,
+    batched_params: bool = False,
+    measure_time: bool = True,
+    progress: bool = False,
+) -> Evaluation:
+    """Run ``num_episodes`` episodes of ``env`` under ``controller`` and score them.
+
+    Args:
+        env: an ``scg_jax.Env``. params: the true plant's ``EnvParams`` (what is simulated; the controller was built
+            from its own prior). controller: an ``algorithms.base.Controller``. key: a JAX PRNG key.
+        num_episodes: number of episodes, run as parallel copies (one episode per copy).
+        batched_params: ``params`` has a leading axis of size ``num_episodes`` (a sweep).
+        measure_time: time JAX controllers alone (one extra replay); host controllers are always timed.
+        progress: show a progress bar (host controllers, whose loop runs in Python).
+
+    Returns:
+        ``Evaluation`` (see its docstring for the definitions).
+    """
+    num_episodes = _check(env, params, controller, num_episodes)
+    if controller.is_jax:
+        trajectory, timing, per_step, per_batch_step = _evaluate_jax(
+            env, params, controller, key, num_episodes, batched_params, measure_time
+        )
+    else:
+        trajectory, timing, per_step, per_batch_step = _evaluate_host(
+            env, params, controller, key, num_episodes, batched_params, progress
+        )
+    per_episode = metrics_lib.episode_metrics(
+        trajectory["reward"],
+        trajectory["terminated"],
+        trajectory["truncated"],
+        trajectory["mse"],
+        trajectory["out_of_bounds"],
+        trajectory["nonfinite"],
+        trajectory["cost"],
+    )
+    raw = metrics_lib.summarize(per_episode)
+    summary: dict[str, Any] = {name: raw[source] for name, source in SUMMARY_KEYS.items()}
+    summary["compute_time_per_step_s"] = per_step
+    summary["compute_time_per_batch_step_s"] = per_batch_step
+    summary["num_episodes"] = num_episodes
+    return Evaluation(controller.name, summary, per_episode, trajectory, timing)
+
+
+def evaluation_record(evaluation: Evaluation, extra: Mapping | None = None) -> dict:
+    """The JSON record of an evaluation: the summary keys at the top level (``rmse``, ``rmse_std``,
+    ``worst_case_rmse_at_0.5``, ``failure_rate``, ``constraint_violation_steps``, ``return``, ``length``, ...),
+    then ``controller``, ``timing``, ``per_episode`` lists and ``extra``."""
+    record = dict(evaluation.summary)
+    record["controller"] = evaluation.controller
+    record["timing"] = dict(evaluation.timing)
+    record["per_episode"] = {name: np.asarray(v).tolist() for name, v in evaluation.per_episode.items()}
+    if extra:
+        record.update(extra)
+    return record
