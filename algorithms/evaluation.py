@@ -146,13 +146,30 @@ def _replay_fn(env, controller):
     return replay
 
 
+# Compiled closed loops and replays, so evaluating the same env and controller again (new key, new params of the
+# same shapes) does not compile again. Envs and controllers compare by identity.
+_COMPILED: dict = {}
+
+
+def _compiled(kind: str, env, controller, axis, args) -> tuple[Any, float]:
+    """``(executable, compile seconds)``; 0 s when it was compiled before for the same shapes."""
+    signature = jax.tree.map(lambda a: (jnp.shape(a), jnp.result_type(a)), args)
+    cache_key = (kind, id(env), id(controller), axis, str(jax.tree.structure(args)), str(signature))
+    entry = _COMPILED.get(cache_key)
+    if entry is not None and entry[0] is env and entry[1] is controller:
+        return entry[2], 0.0
+    build = _closed_loop_fn if kind == "loop" else _replay_fn
+    start = time.perf_counter()
+    executable = jax.jit(jax.vmap(build(env, controller), in_axes=(0, 0, axis))).lower(*args).compile()
+    # env and controller are kept in the entry so their ids cannot be reused by new objects while cached.
+    _COMPILED[cache_key] = (env, controller, executable)
+    return executable, time.perf_counter() - start
+
+
 def _evaluate_jax(env, params, controller, key, num_episodes, batched_params, measure_time):
     env_keys, ctrl_keys = _copy_keys(key, num_episodes)
     axis = _params_axis(batched_params)
-    loop = jax.jit(jax.vmap(_closed_loop_fn(env, controller), in_axes=(0, 0, axis)))
-    start = time.perf_counter()
-    compiled = loop.lower(env_keys, ctrl_keys, params).compile()
-    compile_s = time.perf_counter() - start
+    compiled, compile_s = _compiled("loop", env, controller, axis, (env_keys, ctrl_keys, params))
     start = time.perf_counter()
     records, x_final, x_ref = jax.block_until_ready(compiled(env_keys, ctrl_keys, params))
     run_s = time.perf_counter() - start
@@ -160,9 +177,8 @@ def _evaluate_jax(env, params, controller, key, num_episodes, batched_params, me
     timing = {"compile_s": compile_s, "run_s": run_s}
     per_step = per_batch_step = None
     if measure_time:
-        replay = jax.jit(jax.vmap(_replay_fn(env, controller), in_axes=(0, 0, axis)))
         obs = records["obs"]
-        replay_compiled = replay.lower(ctrl_keys, obs, params).compile()
+        replay_compiled, _ = _compiled("replay", env, controller, axis, (ctrl_keys, obs, params))
         jax.block_until_ready(replay_compiled(ctrl_keys, obs, params))
         start = time.perf_counter()
         jax.block_until_ready(replay_compiled(ctrl_keys, obs, params))
@@ -180,18 +196,34 @@ def _evaluate_jax(env, params, controller, key, num_episodes, batched_params, me
 
 
 # --------------------------------------------------------------------------------------------- host path
-def _evaluate_host(env, params, controller, key, num_episodes, batched_params, progress):
-    env_keys, ctrl_keys = _copy_keys(key, num_episodes)
+_HOST_FUNCTIONS: dict = {}
+
+
+def _host_functions(env, batched_params: bool):
+    """Jitted, vmapped ``reset``, ``step`` (from the physical input) and ``reference`` of ``env``, made once."""
+    cache_key = (id(env), batched_params)
+    entry = _HOST_FUNCTIONS.get(cache_key)
+    if entry is not None and entry[0] is env:
+        return entry[1]
     axis = _params_axis(batched_params)
-    reset = jax.jit(jax.vmap(env.reset, in_axes=(0, axis)))
 
     def step_one(state, u, params):
         out = env.step(state, env.input_to_action(u, params), params)
         info = {name: out.info[name] for name in _INFO_KEYS}
         return out.obs, out.state, out.reward, out.cost, out.terminated, out.truncated, info
 
-    step = jax.jit(jax.vmap(step_one, in_axes=(0, 0, axis)))
-    reference_fn = jax.jit(jax.vmap(env.reference, in_axes=(axis,)) if batched_params else env.reference)
+    functions = (
+        jax.jit(jax.vmap(env.reset, in_axes=(0, axis))),
+        jax.jit(jax.vmap(step_one, in_axes=(0, 0, axis))),
+        jax.jit(jax.vmap(env.reference, in_axes=(axis,)) if batched_params else env.reference),
+    )
+    _HOST_FUNCTIONS[cache_key] = (env, functions)
+    return functions
+
+
+def _evaluate_host(env, params, controller, key, num_episodes, batched_params, progress):
+    env_keys, ctrl_keys = _copy_keys(key, num_episodes)
+    reset, step, reference_fn = _host_functions(env, batched_params)
 
     start = time.perf_counter()
     obs, state = reset(env_keys, params)
