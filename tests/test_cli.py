@@ -88,3 +88,56 @@ def test_bad_input_exits_2_naming_the_option(tmp_path, capsys, args, message):
     assert main(["rollout", *args, "--out", str(tmp_path / "bad")]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
+
+
+# ----------------------------------------------------------------------------------------------- eval, compare
+_EVAL_ENV = ["--config", "configs/cartpole_stabilization.yaml", "--set", "env.episode_len_sec=1", "--episodes", "4"]
+
+
+def test_eval_writes_the_paper_metrics_consistent_with_the_data(tmp_path):
+    out = tmp_path / "eval" / "lqr.json"
+    assert main(["eval", *_EVAL_ENV, "--controller", "lqr", "--out", str(out)]) == 0
+    record = json.loads(out.read_text())
+    for key in ("rmse", "rmse_std", "worst_case_rmse_at_0.5", "failure_rate", "constraint_violation_steps"):
+        assert isinstance(record[key], float)
+    assert record["return"] < 0 and record["length"] == 50 and record["controller"] == "lqr"
+    data = np.load(out.with_suffix(".npz"))
+    rmse = np.sqrt(data["mse"].mean(axis=0))
+    np.testing.assert_allclose(record["per_episode"]["rmse"], rmse, rtol=1e-5)
+    np.testing.assert_allclose(record["rmse"], rmse.mean(), rtol=1e-5)
+    assert record["worst_case_rmse_at_0.5"] >= record["rmse"]
+    assert data["x"].shape == (50, 4, 4) and data["u"].shape == (50, 4, 1)
+    np.testing.assert_allclose(data["x_high"], [2.4, np.inf, np.pi / 2, np.inf], rtol=1e-6)
+    assert out.with_suffix(".png").stat().st_size > 10_000
+
+
+def test_compare_evaluates_every_controller_on_the_same_episodes(tmp_path, capsys):
+    out = tmp_path / "compare.json"
+    args = ["compare", *_EVAL_ENV, "--controllers", "lqr", "--prior-scale", "1.5", "--out", str(out)]
+    assert main(args) == 0
+    record = json.loads(out.read_text())
+    assert list(record["controllers"]) == ["lqr"] and record["prior_scale"] == 1.5
+    assert "worst-case rmse" in capsys.readouterr().out
+    # The prior reaches the controller: a heavier model gives other gains than the true one.
+    true_out = tmp_path / "true.json"
+    assert main(["compare", *_EVAL_ENV, "--controllers", "lqr", "--out", str(true_out)]) == 0
+    true_record = json.loads(true_out.read_text())
+    K_true = np.asarray(true_record["controllers"]["lqr"]["controller_info"]["K"])
+    K_heavy = np.asarray(record["controllers"]["lqr"]["controller_info"]["K"])
+    assert K_true.shape == K_heavy.shape == (1, 1, 4) and not np.allclose(K_true, K_heavy, rtol=1e-3)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["eval", "--controller", "pd"], "argument --controller: 'pd' is neither a controller name (pid, lqr"),
+        (["eval", "--controller", "lqr", "--prior-scale", "0"], "argument --prior-scale: must be a positive number"),
+        (["eval", "--controller", "lqr", "--set", "controllers.lqr.mode=near"], "controllers.lqr.mode: unknown value"),
+        (["compare", "--controllers", "lqr,lqr"], "argument --controllers: a controller is listed twice"),
+    ],
+)
+def test_eval_and_compare_refuse_bad_input(tmp_path, capsys, args, message):
+    out = tmp_path / "bad.json"
+    assert main([*args, "--system", "cartpole", "--out", str(out)]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
