@@ -4,6 +4,11 @@ Subcommands (each a ``_add_<name>_parser`` / ``_run_<name>`` pair registered in 
 
 - ``rollout``: one episode of ``--num-envs`` parallel copies under a simple policy; prints a metrics table and
   writes ``rollout.npz``, ``metrics.json`` and ``rollout.png`` to ``--out``.
+- ``eval``: one controller (a registered name or a trained policy's folder) on ``--episodes`` episodes with the
+  paper's metrics; writes the JSON, the trajectories (.npz) and a plot (.png).
+- ``compare``: several controllers on the same episodes, side by side.
+- ``train``: PPO or SAC with the config's ``training.ALGO`` hyperparameters; writes the policy, checkpoints, the
+  learning curve and ``metrics.json`` (training summary and an evaluation of the policy).
 
 ``main(argv) -> int`` never raises ``SystemExit`` itself: it returns 0 on success and 2 on bad input (argparse's
 convention), so it can be called from tests and from the console script alike.
@@ -12,6 +17,7 @@ convention), so it can be called from tests and from the console script alike.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from collections.abc import Callable
@@ -596,11 +602,91 @@ def _run_compare(args: argparse.Namespace, console) -> int:
     return 0
 
 
+# ----------------------------------------------------------------------------------------------- train
+LEARNERS = ("ppo", "sac")
+
+
+def _add_train_parser(subparsers) -> argparse.ArgumentParser:
+    parser = subparsers.add_parser(
+        "train",
+        help="train PPO or SAC on parallel copies of a config's env; save the policy, learning curve and metrics",
+        description=(
+            "Train a JAX learner with the hyperparameters of the config's training.ALGO section (defaults where "
+            "absent) on the env of the config, with its randomisation and disturbances. Shows progress; writes to "
+            "--out the policy (policy.msgpack/json), checkpoint.msgpack/json (resumable with --resume), "
+            "progress.csv and learning_curve.png, then evaluates the policy like scg-jax eval and writes "
+            "metrics.json."
+        ),
+    )
+    _add_env_arguments(parser)
+    parser.add_argument("--algo", required=True, choices=LEARNERS, help="learner")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    parser.add_argument("--seed", type=int, default=0, help="PRNG seed; same seed, same policy (default: 0)")
+    parser.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.* when present")
+    parser.add_argument(
+        "--eval-episodes", type=_positive_int, default=16, help="episodes of the final evaluation (default: 16)"
+    )
+    return parser
+
+
+def _run_train(args: argparse.Namespace, console) -> int:
+    import jax
+
+    from algorithms.base import parse_options
+    from algorithms.evaluation import evaluate, evaluation_record
+    from algorithms.rl.policy import algorithm_module, load_policy
+    from algorithms.rl.training import run_training
+    from scg_jax.config import dump_config
+
+    env, params, cfg = _make_env(args)
+    try:
+        config = parse_options(
+            algorithm_module(args.algo, "Config"), cfg.training.get(args.algo), f"training.{args.algo}"
+        )
+        learner = algorithm_module(args.algo, "make_learner")(config, env)
+    except ValueError as error:
+        raise _UsageError(str(error)) from None
+    key = jax.random.key(args.seed)
+    train_key, eval_key = jax.random.split(key)
+    try:
+        summary = run_training(
+            learner, env, params, train_key, args.out, resume=args.resume, progress=True, env_config=dump_config(cfg)
+        )
+    except ValueError as error:  # e.g. resuming a checkpoint of another algorithm or config
+        raise _UsageError(f"argument --resume: {error}") from None
+    policy = load_policy(args.out, env, params)
+    with console.status(f"evaluating the trained policy on {args.eval_episodes} episodes"):
+        evaluation = evaluate(env, params, policy, eval_key, args.eval_episodes)
+    record = {
+        "command": "train",
+        "algo": args.algo,
+        "system": env.system.name,
+        "task": env.task,
+        "config_file": None if args.config is None else str(args.config),
+        "config": dump_config(cfg),
+        "overrides": list(args.set),
+        "seed": args.seed,
+        "hyperparameters": _jsonable(dataclasses.asdict(config)),
+        "training": _jsonable(summary),
+        "evaluation": evaluation_record(evaluation),
+        "device": str(jax.devices()[0]),
+    }
+    write_json(args.out / "metrics.json", record)
+    title = (
+        f"{env.system.name} {env.task} | {args.algo}, {summary['env_steps']:,} env steps in "
+        f"{summary['total_time_s']:.1f} s | {args.eval_episodes} evaluation episodes"
+    )
+    console.print(_summary_table(title, {args.algo: evaluation.summary}))
+    console.print(f"wrote {args.out}/policy.msgpack, progress.csv, learning_curve.png, metrics.json")
+    return 0
+
+
 # ----------------------------------------------------------------------------------------------- entry point
 _SUBCOMMANDS: dict[str, tuple[Callable, Callable]] = {
     "rollout": (_add_rollout_parser, _run_rollout),
     "eval": (_add_eval_parser, _run_eval),
     "compare": (_add_compare_parser, _run_compare),
+    "train": (_add_train_parser, _run_train),
 }
 
 
