@@ -335,6 +335,10 @@ def evaluate(
         trajectory, timing, per_step, per_batch_step = _evaluate_host(
             env, params, controller, key, num_episodes, batched_params, progress
         )
+    return _score(controller.name, trajectory, timing, per_step, per_batch_step, num_episodes)
+
+
+def _score(name, trajectory, timing, per_step, per_batch_step, num_episodes) -> Evaluation:
     per_episode = metrics_lib.episode_metrics(
         trajectory["reward"],
         trajectory["terminated"],
@@ -349,7 +353,46 @@ def evaluate(
     summary["compute_time_per_step_s"] = per_step
     summary["compute_time_per_batch_step_s"] = per_batch_step
     summary["num_episodes"] = num_episodes
-    return Evaluation(controller.name, summary, per_episode, trajectory, timing)
+    return Evaluation(name, summary, per_episode, trajectory, timing)
+
+
+def make_evaluator(env, build_controller, num_episodes: int, *, batched_params: bool = False):
+    """An evaluation whose controller is rebuilt from traced values, for evaluating a learner as it trains.
+
+    ``evaluate`` compiles once per controller object; a learner's policy changes every iteration, so here the
+    controller is built inside the compiled function from ``controller_params`` (e.g. network weights), and a new
+    policy is evaluated without compiling again.
+
+    Args:
+        env: the environment. build_controller: ``build_controller(controller_params) -> JaxController``, traced.
+        num_episodes: copies, one episode each. batched_params: ``params`` has a leading copy axis.
+
+    Returns:
+        ``evaluate_fn(controller_params, key, params) -> Evaluation`` (no compute-time measurement), with the same
+        keys per copy as ``evaluate``.
+    """
+    num_episodes = int(num_episodes)
+    axis = _params_axis(batched_params)
+
+    def run(controller_params, env_keys, ctrl_keys, params):
+        controller = build_controller(controller_params)
+        loop = jax.vmap(_closed_loop_fn(env, controller), in_axes=(0, 0, axis))
+        return loop(env_keys, ctrl_keys, params)
+
+    run_jit = jax.jit(run)
+
+    def evaluate_fn(controller_params, key, params) -> Evaluation:
+        env_keys, ctrl_keys = _copy_keys(key, num_episodes)
+        start = time.perf_counter()
+        records, x_final, x_ref = jax.block_until_ready(run_jit(controller_params, env_keys, ctrl_keys, params))
+        timing = {"run_s": time.perf_counter() - start}
+        trajectory = {name: np.swapaxes(np.asarray(value), 0, 1) for name, value in records.items()}
+        trajectory["x"] = np.concatenate([trajectory["x"], np.asarray(x_final)[None]], axis=0)
+        trajectory["x_ref"] = np.swapaxes(np.asarray(x_ref), 0, 1)
+        name = build_controller.__name__ if hasattr(build_controller, "__name__") else "controller"
+        return _score(name, trajectory, timing, None, None, num_episodes)
+
+    return evaluate_fn
 
 
 def evaluation_record(evaluation: Evaluation, extra: Mapping | None = None) -> dict:

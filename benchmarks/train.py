@@ -1,0 +1,389 @@
+"""Training speed of the JAX learners: throughput next to the raw env, and time to an LQR-level policy.
+
+Two measurements, each against a baseline measured in the same run:
+
+1. **Throughput** (``--batches``, default 1,024 and 4,096 copies): env steps per second of PPO's and SAC's
+   training iterations (``Learner.update``, jitted and chained with ``lax.fori_loop``; compile excluded), next to
+   the raw env's steps per second for the same copies (``scg_jax.rollout.make_rollout`` with auto-reset and a
+   constant action: the bare cost of simulating what the learner consumes). The ratio is the share of the env's
+   speed the learner keeps.
+2. **Time to threshold** (``--threshold``): wall time from the start of training (compile included, evaluation
+   excluded) until the deterministic policy's stabilisation RMSE, evaluated on ``--eval-episodes`` episodes by
+   ``algorithms.evaluation.evaluate``, is within ``--rmse-factor`` (1.5) times LQR's on the same episodes, with no
+   crash. Our PPO is trained in chunks of iterations and evaluated after each; brax's PPO (through
+   ``scg_jax.adapters.brax``) with the same env, copies, rollout length, epochs, minibatches, learning rate and
+   networks, evaluated in its ``policy_params_fn`` callback at ``--brax-evals`` points. The ratio brax / ours of
+   time to threshold is printed (> 1: ours is faster).
+
+The env and the hyperparameters are those of the config (default ``configs/cartpole_stabilization.yaml``, its
+``training.ppo`` section). Results go to ``benchmarks/results/train.json``.
+
+Run ``python benchmarks/train.py --help``; see benchmarks/README.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import functools
+import math
+import platform
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from machine import cpu_count, load_average  # benchmarks/machine.py, beside this script
+from rich.console import Console
+from rich.table import Table
+
+from algorithms.base import JaxController, parse_options
+from algorithms.evaluation import evaluate, make_evaluator
+from algorithms.lqr import make_lqr
+from algorithms.rl.envs import policy_action_to_input
+from algorithms.rl.policy import algorithm_module
+from scg_jax.config import load_config, make_from_config
+from scg_jax.files import write_json
+from scg_jax.rollout import make_rollout
+
+# Goals of the issue (printed next to the measurement; never an error exit).
+GOAL_CARTPOLE_S = 60.0
+GOAL_QUADROTOR_2D_S = 600.0
+
+
+def _config(cfg, algo: str, **changes):
+    config_class = algorithm_module(algo, "Config")
+    options = dict(cfg.training.get(algo, {}))
+    options.update(changes)
+    return parse_options(config_class, options, f"training.{algo}")
+
+
+def _policy_evaluator(env, params, episodes: int, make_policy, name: str):
+    """``evaluate_fn(policy_params, key) -> Evaluation`` of the deterministic policy ``make_policy(policy_params)``
+    (actions in [-1, 1]); compiled once, so evaluating after every chunk of training costs no compile."""
+    physics = params.physics
+
+    def build(policy_params):
+        policy = make_policy(policy_params)
+
+        def act(ctrl_state, obs, step, reference):
+            return policy_action_to_input(env, policy(obs), physics), ctrl_state
+
+        return JaxController(name, lambda key, reference: (), act)
+
+    build.__name__ = name
+    evaluate_fn = make_evaluator(env, build, episodes)
+    return lambda policy_params, key: evaluate_fn(policy_params, key, params)
+
+
+# --------------------------------------------------------------------------------------------- throughput
+def _update_runner(learner, iterations: int):
+    def run(state, params):
+        return jax.lax.fori_loop(0, iterations, lambda i, s: learner.update(s, params)[0], state)
+
+    return jax.jit(run)
+
+
+def throughput(env, params, cfg, algo: str, batch: int, iterations: int, repeats: int) -> dict:
+    """Training env steps/s of ``algo`` at ``batch`` copies, and the raw env's steps/s for the same steps."""
+    changes = {"num_envs": batch}
+    if algo == "ppo":
+        base = _config(cfg, "ppo")
+        changes["total_env_steps"] = batch * base.rollout_length * iterations
+        # Keep the minibatch size of the config (the batch grows with the copies).
+        minibatch = base.batch_size // base.num_minibatches
+        changes["num_minibatches"] = max(1, batch * base.rollout_length // minibatch)
+    config = _config(cfg, algo, **changes)
+    learner = algorithm_module(algo, "make_learner")(config, env)
+    state = learner.init(jax.random.key(0), params)
+    state, metrics = jax.jit(learner.update)(state, params)  # past any warm-up phase of the first iteration
+    steps_per_iteration = int(jax.jit(learner.update)(state, params)[1]["env_steps"]) - int(metrics["env_steps"])
+    run = _update_runner(learner, iterations)
+    start = time.perf_counter()
+    compiled = run.lower(state, params).compile()
+    compile_s = time.perf_counter() - start
+    jax.block_until_ready(compiled(state, params))
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(compiled(state, params))
+        times.append(time.perf_counter() - start)
+    train_s = float(np.median(times))
+    train_rate = steps_per_iteration * iterations / train_s
+
+    # The raw env for the same number of steps: constant (zero normalised) action, auto-reset.
+    num_steps = max(1, steps_per_iteration * iterations // batch)
+    zero = jnp.zeros(env.nu)
+    rollout = make_rollout(
+        env, lambda obs, s, p, k: env.input_to_action(policy_action_to_input(env, zero, p.physics), p), batch, num_steps
+    )
+    jax.block_until_ready(rollout(jax.random.key(1), params))
+    env_times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(rollout(jax.random.key(1), params))
+        env_times.append(time.perf_counter() - start)
+    env_rate = batch * num_steps / float(np.median(env_times))
+    return {
+        "algo": algo,
+        "batch": batch,
+        "steps_per_iteration": steps_per_iteration,
+        "iterations": iterations,
+        "compile_s": compile_s,
+        "train_steps_per_s": train_rate,
+        "env_steps_per_s": env_rate,
+        "train_over_env": train_rate / env_rate,
+    }
+
+
+# --------------------------------------------------------------------------------------------- time to threshold
+def lqr_threshold(env, params, eval_key, episodes: int, factor: float) -> dict:
+    summary = evaluate(env, params, make_lqr(env, params), eval_key, episodes, measure_time=False).summary
+    return {"lqr_rmse": summary["rmse"], "threshold_rmse": factor * summary["rmse"]}
+
+
+def _point(clock: float, steps: int, summary: dict) -> dict:
+    return {"time_s": clock, "env_steps": steps, "rmse": summary["rmse"], "crash_rate": summary["crash_rate"]}
+
+
+def _meets(summary: dict, threshold: float) -> bool:
+    return summary["crash_rate"] == 0.0 and summary["rmse"] <= threshold
+
+
+def ours_time_to_threshold(env, params, cfg, threshold, eval_key, episodes, max_s, chunk_s, console) -> dict:
+    """Train our PPO in chunks of iterations; evaluate after each; stop at the threshold or the time limit."""
+    config = _config(cfg, "ppo")
+    learner = algorithm_module("ppo", "make_learner")(config, env)
+    evaluate_policy = _policy_evaluator(
+        env, params, episodes, lambda p: lambda obs: learner.make_policy(p)(obs, None), "ppo"
+    )
+    chunk_jit = jax.jit(
+        lambda state, params, n: jax.lax.fori_loop(0, n, lambda i, s: learner.update(s, params)[0], state),
+        static_argnums=2,
+    )
+    curve = []
+    eval_s = 0.0
+    start = time.perf_counter()
+    state = jax.jit(learner.init)(jax.random.key(0), params)
+    iterations, n = 0, 1
+    while iterations < learner.num_iterations:
+        n = min(n, learner.num_iterations - iterations)
+        tick = time.perf_counter()
+        state = jax.block_until_ready(chunk_jit(state, params, n))
+        per_iteration_s = (time.perf_counter() - tick) / n  # includes compile when n is new: errs on small chunks
+        iterations += n
+        clock = time.perf_counter() - start - eval_s
+        tick = time.perf_counter()
+        summary = evaluate_policy(learner.policy_params(state), eval_key).summary
+        eval_s += time.perf_counter() - tick
+        steps = iterations * config.batch_size
+        curve.append(
+            {"time_s": clock, "env_steps": steps, "rmse": summary["rmse"], "crash_rate": summary["crash_rate"]}
+        )
+        console.print(f"  ours  t={clock:6.1f} s  steps={steps:>9,}  rmse={summary['rmse']:.4f}")
+        if _meets(summary, threshold):
+            return {"reached": True, "time_s": clock, "env_steps": steps, "curve": curve}
+        if clock > max_s:
+            break
+        # Powers of two, at most doubling: few distinct chunk sizes, so few compiles.
+        n = 2 ** int(math.log2(max(1, min(2 * n, int(chunk_s / max(per_iteration_s, 1e-6))))))
+    return {
+        "reached": False,
+        "time_s": time.perf_counter() - start - eval_s,
+        "env_steps": iterations * config.batch_size,
+        "curve": curve,
+    }
+
+
+def brax_time_to_threshold(env, params, cfg, threshold, eval_key, episodes, max_s, num_evals, console) -> dict:
+    """brax PPO with the same env and matched hyperparameters, evaluated in its ``policy_params_fn``."""
+    from brax.training.agents.ppo import networks as ppo_networks
+    from brax.training.agents.ppo import train as brax_ppo
+
+    from scg_jax.adapters.brax import BraxEnv, wrap_for_training
+
+    config = _config(cfg, "ppo")
+    if env.action_mode != "normalized":
+        raise SystemExit("brax comparison: the config's env must use action_mode: normalized")
+    curve = []
+    eval_time = [0.0]
+    start = time.perf_counter()
+    reached = {}
+
+    evaluators = {}
+
+    def policy_params_fn(step, make_policy, brax_params):
+        if reached:
+            return
+        tick = time.perf_counter()
+        if "fn" not in evaluators:
+            evaluators["fn"] = _policy_evaluator(
+                env,
+                params,
+                episodes,
+                lambda p: lambda obs: make_policy(p, deterministic=True)(obs, jax.random.key(0))[0],
+                "brax_ppo",
+            )
+        summary = evaluators["fn"](brax_params, eval_key).summary
+        eval_time[0] += time.perf_counter() - tick
+        clock = time.perf_counter() - start - eval_time[0]
+        curve.append(
+            {"time_s": clock, "env_steps": int(step), "rmse": summary["rmse"], "crash_rate": summary["crash_rate"]}
+        )
+        console.print(f"  brax  t={clock:6.1f} s  steps={int(step):>9,}  rmse={summary['rmse']:.4f}")
+        if _meets(summary, threshold):
+            reached.update(time_s=clock, env_steps=int(step))
+
+    num_minibatches = config.num_minibatches
+    batch_size = config.num_envs // num_minibatches  # one unroll of every copy per update, as ours
+    network = functools.partial(
+        ppo_networks.make_ppo_networks,
+        policy_hidden_layer_sizes=tuple(config.actor_hidden),
+        value_hidden_layer_sizes=tuple(config.critic_hidden),
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        brax_ppo.train(
+            BraxEnv(env),
+            num_timesteps=config.total_env_steps,
+            episode_length=env.num_steps,
+            wrap_env_fn=wrap_for_training,
+            num_envs=config.num_envs,
+            batch_size=batch_size,
+            num_minibatches=num_minibatches,
+            unroll_length=config.rollout_length,
+            num_updates_per_batch=config.num_epochs,
+            learning_rate=config.learning_rate,
+            entropy_cost=config.ent_coef,
+            discounting=config.gamma,
+            gae_lambda=config.gae_lambda,
+            clipping_epsilon=config.clip_eps,
+            max_grad_norm=config.max_grad_norm,
+            normalize_observations=config.normalize_observations,
+            reward_scaling=config.reward_scale,
+            network_factory=network,
+            num_evals=num_evals,
+            num_eval_envs=16,
+            seed=0,
+            policy_params_fn=policy_params_fn,
+        )
+    total = time.perf_counter() - start - eval_time[0]
+    if reached:
+        return {"reached": True, **reached, "curve": curve}
+    return {"reached": False, "time_s": total, "env_steps": config.total_env_steps, "curve": curve}
+
+
+# --------------------------------------------------------------------------------------------- main
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--config", default="configs/cartpole_stabilization.yaml", help="env and training config")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config overrides")
+    parser.add_argument("--batches", type=int, nargs="+", default=[1024, 4096], help="copies for the throughput")
+    parser.add_argument("--algos", nargs="+", default=["ppo", "sac"], choices=["ppo", "sac"], help="throughput")
+    parser.add_argument("--iterations", type=int, default=4, help="iterations per timed throughput call")
+    parser.add_argument("--repeats", type=int, default=3, help="timed throughput calls (median)")
+    parser.add_argument("--threshold", action=argparse.BooleanOptionalAction, default=True, help="time to threshold")
+    parser.add_argument("--brax", action=argparse.BooleanOptionalAction, default=True, help="brax PPO comparison")
+    parser.add_argument("--rmse-factor", type=float, default=1.5, help="threshold: this times LQR's RMSE")
+    parser.add_argument("--eval-episodes", type=int, default=32, help="episodes per evaluation")
+    parser.add_argument("--max-seconds", type=float, default=300.0, help="give up after this much training time")
+    parser.add_argument("--chunk-seconds", type=float, default=3.0, help="training time between evaluations")
+    parser.add_argument("--brax-evals", type=int, default=20, help="evaluation points of the brax run")
+    parser.add_argument("--json", type=Path, default=Path("benchmarks/results/train.json"), help="results file")
+    args = parser.parse_args(argv)
+    console = Console()
+
+    cfg = load_config(args.config, args.set)
+    env, params = make_from_config(cfg)
+    record = {
+        "config": str(args.config),
+        "overrides": args.set,
+        "date": datetime.datetime.now().isoformat(timespec="seconds"),
+        "device": str(jax.devices()[0]),
+        "cpu_count": cpu_count(),
+        "load_average": load_average(),
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "hyperparameters": {algo: dataclasses.asdict(_config(cfg, algo)) for algo in ("ppo", "sac")},
+    }
+
+    rows = []
+    for algo in args.algos:
+        for batch in args.batches:
+            console.print(f"throughput: {algo} at {batch} copies")
+            rows.append(throughput(env, params, cfg, algo, batch, args.iterations, args.repeats))
+    record["throughput"] = rows
+    if rows:
+        table = Table(title=f"training throughput, {env.system.name} {env.task}, {record['device']}")
+        for column in ("algo", "copies", "train steps/s", "env steps/s", "train / env", "compile s"):
+            table.add_column(column, justify="right")
+        for row in rows:
+            table.add_row(
+                row["algo"],
+                f"{row['batch']:,}",
+                f"{row['train_steps_per_s']:,.0f}",
+                f"{row['env_steps_per_s']:,.0f}",
+                f"{row['train_over_env']:.3f}",
+                f"{row['compile_s']:.1f}",
+            )
+        console.print(table)
+
+    if args.threshold:
+        eval_key = jax.random.key(123)
+        threshold = lqr_threshold(env, params, eval_key, args.eval_episodes, args.rmse_factor)
+        console.print(
+            f"LQR rmse {threshold['lqr_rmse']:.4f}; threshold {args.rmse_factor} x = {threshold['threshold_rmse']:.4f}"
+        )
+        ours = ours_time_to_threshold(
+            env,
+            params,
+            cfg,
+            threshold["threshold_rmse"],
+            eval_key,
+            args.eval_episodes,
+            args.max_seconds,
+            args.chunk_seconds,
+            console,
+        )
+        record["time_to_threshold"] = {**threshold, "rmse_factor": args.rmse_factor, "ours": ours}
+        brax = None
+        if args.brax:
+            brax = brax_time_to_threshold(
+                env,
+                params,
+                cfg,
+                threshold["threshold_rmse"],
+                eval_key,
+                args.eval_episodes,
+                args.max_seconds,
+                args.brax_evals,
+                console,
+            )
+            record["time_to_threshold"]["brax"] = brax
+        goal = GOAL_CARTPOLE_S if env.system.name == "cartpole" else GOAL_QUADROTOR_2D_S
+        table = Table(title=f"time to {args.rmse_factor} x LQR's RMSE ({threshold['threshold_rmse']:.4f})")
+        for column in ("learner", "reached", "time s (compile incl.)", "env steps", f"goal {goal:.0f} s"):
+            table.add_column(column, justify="right")
+        for name, result in (("ours (PPO)", ours), ("brax PPO", brax)):
+            if result is None:
+                continue
+            met = "met" if result["reached"] and result["time_s"] <= goal else "missed"
+            table.add_row(name, str(result["reached"]), f"{result['time_s']:.1f}", f"{result['env_steps']:,}", met)
+        console.print(table)
+        if brax is not None and ours["reached"]:
+            ratio = brax["time_s"] / ours["time_s"]
+            prefix = "" if brax["reached"] else ">= "
+            record["time_to_threshold"]["brax_over_ours"] = ratio
+            console.print(f"brax / ours time to threshold: {prefix}{ratio:.2f} (> 1: ours is faster)")
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    write_json(args.json, record)
+    console.print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
