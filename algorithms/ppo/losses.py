@@ -1,0 +1,148 @@
+"""PPO's pure pieces: the diagonal Gaussian policy, generalised advantage estimation and the clipped losses.
+
+Action convention: the policy is a diagonal Gaussian ``N(mu(obs), diag(exp(log_std))^2)`` over *unbounded*
+actions; the environment wrapper (``algorithms.rl.envs``) clips a sample to [-1, 1] before applying it. The clip is
+part of the environment as the learner sees it, so the log-probabilities, ratios and entropy are those of the
+unclipped Gaussian sample the learner stored (exact, closed form), and the deterministic action is
+``clip(mu, -1, 1)``. (tanh squashing would need a Jacobian correction and has no closed-form entropy; near the
+upright equilibrium the actions are small and the clip is rarely active.)
+
+All functions are pure ``jax.numpy`` and work on any leading batch shape.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+
+LOG_2PI = math.log(2.0 * math.pi)
+
+
+def gaussian_log_prob(mean, log_std, action):
+    """Log-density of ``action`` under ``N(mean, diag(exp(log_std))^2)``, summed over the last axis.
+
+    ``log p = sum_i [ -0.5 ((a_i - mu_i) / sigma_i)^2 - log sigma_i - 0.5 log(2 pi) ]``.
+
+    Args:
+        mean: (..., d). log_std: (d,) or (..., d). action: (..., d).
+
+    Returns:
+        (...) log-density (nats).
+    """
+    z = (action - mean) * jnp.exp(-log_std)
+    return jnp.sum(-0.5 * jnp.square(z) - log_std - 0.5 * LOG_2PI, axis=-1)
+
+
+def gaussian_entropy(log_std):
+    """Differential entropy of the diagonal Gaussian, ``sum_i (0.5 (1 + log(2 pi)) + log sigma_i)`` (nats).
+
+    Args:
+        log_std: (d,) or (..., d). Returns: (...).
+    """
+    return jnp.sum(0.5 * (1.0 + LOG_2PI) + log_std, axis=-1)
+
+
+def gae(rewards, values, next_values, terminated, truncated, gamma: float, lam: float):
+    """Generalised advantage estimation over a time-major rollout that may span several episodes.
+
+    For step t: ``delta_t = r_t + gamma (1 - terminated_t) V'_t - V_t``, where ``V'_t`` is the value of the
+    observation the step *reached* (``final_obs``, before any reset): at a time limit (``truncated``) the return
+    is bootstrapped from it, at a termination it is not. ``A_t = delta_t + gamma lam (1 - done_t) A_{t+1}`` with
+    ``done = terminated | truncated``: the trace stops at every episode boundary, and after the last step of the
+    rollout (``A_T = 0``; its ``delta`` already bootstraps from ``V'``). The value targets are ``A_t + V_t``.
+
+    Args:
+        rewards, values, next_values: (T, ...) floats. terminated, truncated: (T, ...) bools.
+        gamma: discount in [0, 1]. lam: GAE lambda in [0, 1] (1: Monte-Carlo returns bootstrapped at the end).
+
+    Returns:
+        ``(advantages, returns)``, each (T, ...).
+    """
+    dtype = values.dtype
+    not_terminated = 1.0 - terminated.astype(dtype)
+    not_done = 1.0 - (terminated | truncated).astype(dtype)
+    deltas = rewards + gamma * not_terminated * next_values - values
+
+    def backward(advantage_next, step):
+        delta, continues = step
+        advantage = delta + gamma * lam * continues * advantage_next
+        return advantage, advantage
+
+    _, advantages = jax.lax.scan(backward, jnp.zeros_like(deltas[0]), (deltas, not_done), reverse=True)
+    return advantages, advantages + values
+
+
+def clipped_surrogate_loss(log_prob, old_log_prob, advantages, clip_eps: float):
+    """PPO's clipped policy objective, as a loss to minimise.
+
+    ``L = -mean( min(rho A, clip(rho, 1 - eps, 1 + eps) A) )`` with ``rho = exp(log_prob - old_log_prob)``.
+
+    Returns:
+        ``(loss, info)`` with ``info = {"clip_fraction": share of samples with |rho - 1| > eps,
+        "approx_kl": mean((rho - 1) - log rho)}`` (the non-negative KL estimator of Schulman).
+    """
+    log_ratio = log_prob - old_log_prob
+    ratio = jnp.exp(log_ratio)
+    unclipped = ratio * advantages
+    clipped = jnp.clip(ratio, 1.0 - clip_eps, 1.0 + clip_eps) * advantages
+    loss = -jnp.mean(jnp.minimum(unclipped, clipped))
+    info = {
+        "clip_fraction": jnp.mean((jnp.abs(ratio - 1.0) > clip_eps).astype(ratio.dtype)),
+        "approx_kl": jnp.mean((ratio - 1.0) - log_ratio),
+    }
+    return loss, info
+
+
+def value_loss(values, old_values, returns, clip_eps: float | None = None):
+    """Half the mean squared error of the value, optionally clipped around the rollout's values.
+
+    Unclipped: ``0.5 mean((V - R)^2)``. Clipped (``clip_eps`` given): with ``V_c = V_old + clip(V - V_old, -eps,
+    eps)``, ``0.5 mean(max((V - R)^2, (V_c - R)^2))``, so a value step beyond ``eps`` from ``V_old`` earns no
+    further reduction.
+    """
+    error = jnp.square(values - returns)
+    if clip_eps is not None:
+        clipped = old_values + jnp.clip(values - old_values, -clip_eps, clip_eps)
+        error = jnp.maximum(error, jnp.square(clipped - returns))
+    return 0.5 * jnp.mean(error)
+
+
+def normalize_advantages(advantages, eps: float = 1e-8):
+    """``(A - mean A) / (std A + eps)`` over the whole array (a minibatch)."""
+    return (advantages - jnp.mean(advantages)) / (jnp.std(advantages) + eps)
+
+
+def ppo_loss(
+    mean,
+    log_std,
+    values,
+    actions,
+    old_log_prob,
+    old_values,
+    advantages,
+    returns,
+    *,
+    clip_eps: float,
+    value_clip_eps: float | None,
+    vf_coef: float,
+    ent_coef: float,
+):
+    """The total PPO loss ``L_clip + vf_coef L_V - ent_coef H`` of a minibatch.
+
+    Args:
+        mean: (B, d) policy means. log_std: (d,). values: (B,) critic outputs. actions: (B, d) stored (unclipped)
+            samples. old_log_prob, old_values: (B,) from the rollout. advantages, returns: (B,) from ``gae``
+            (already normalised if wanted).
+
+    Returns:
+        ``(loss, info)``; ``info`` holds ``policy_loss``, ``value_loss``, ``entropy``, ``clip_fraction``,
+        ``approx_kl``.
+    """
+    log_prob = gaussian_log_prob(mean, log_std, actions)
+    policy_loss, info = clipped_surrogate_loss(log_prob, old_log_prob, advantages, clip_eps)
+    v_loss = value_loss(values, old_values, returns, value_clip_eps)
+    entropy = gaussian_entropy(log_std)
+    loss = policy_loss + vf_coef * v_loss - ent_coef * entropy
+    return loss, {"policy_loss": policy_loss, "value_loss": v_loss, "entropy": entropy, **info}

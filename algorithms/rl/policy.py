@@ -1,0 +1,64 @@
+"""A trained policy saved by ``run_training`` as a controller the evaluation harness can run."""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+from algorithms.base import JaxController, parse_options
+from algorithms.rl.checkpoint import load_checkpoint, load_metadata
+from algorithms.rl.envs import policy_action_to_input
+from algorithms.rl.training import POLICY_NAME
+
+
+def algorithm_module(algo: str, part: str):
+    """``Config`` or ``make_learner`` of the package ``algorithms.<algo>`` (top level, else its submodules)."""
+    package = importlib.import_module(f"algorithms.{algo}")
+    if hasattr(package, part):
+        return getattr(package, part)
+    submodule = {"Config": "config", "make_learner": "train"}[part]
+    return getattr(importlib.import_module(f"algorithms.{algo}.{submodule}"), part)
+
+
+def load_learner(directory, env):
+    """The ``Learner`` whose policy was saved in ``directory`` (rebuilt from ``policy.json``), and the metadata."""
+    meta = load_metadata(directory, POLICY_NAME)
+    algo = meta.get("algo")
+    if not isinstance(algo, str) or not algo.isidentifier():
+        raise ValueError(f"{Path(directory) / POLICY_NAME}.json: algo must name a learner package, got {algo!r}")
+    if meta.get("obs_size") is not None and meta["obs_size"] != env.observation_size:
+        raise ValueError(
+            f"{Path(directory) / POLICY_NAME}.json: the policy observes {meta['obs_size']} values but the env gives "
+            f"{env.observation_size} (a different obs_goal_horizon or system?)"
+        )
+    config = parse_options(algorithm_module(algo, "Config"), meta.get("config") or {}, f"training.{algo}")
+    return algorithm_module(algo, "make_learner")(config, env), meta
+
+
+def load_policy(directory, env, params) -> JaxController:
+    """The deterministic policy saved in ``directory`` as a stateless ``JaxController``.
+
+    Args:
+        directory: a folder with ``policy.json`` and ``policy.msgpack`` (``run_training``'s ``out_dir``).
+        env: the ``scg_jax.Env`` to act in (same observation layout as in training). params: ``EnvParams`` whose
+            nominal physics converts the policy's action in [-1, 1] to the physical input.
+
+    Returns:
+        ``JaxController`` named after the algorithm; ``act`` returns ``u = env.system.action_to_input(a,
+        params.physics)`` (nu,) in N for the mean action ``a``, ``ctrl_state = ()``.
+    """
+    learner, meta = load_learner(directory, env)
+    target = jax.eval_shape(lambda key: learner.policy_params(learner.init(key, params)), jax.random.PRNGKey(0))
+    policy_params, _ = load_checkpoint(directory, POLICY_NAME, target)
+    policy_params = jax.tree.map(jnp.asarray, policy_params)
+    policy = learner.make_policy(policy_params)
+    physics = params.physics
+
+    def act(ctrl_state, obs, step, reference):
+        return policy_action_to_input(env, policy(obs, None), physics), ctrl_state
+
+    info = {"directory": str(directory), "iterations": meta.get("iterations"), "env_steps": meta.get("env_steps")}
+    return JaxController(name=meta["algo"], reset_fn=lambda key, reference: (), act_fn=act, info=info)

@@ -1,0 +1,116 @@
+"""SAC's pure loss functions (Haarnoja et al. 2018, "Soft Actor-Critic Algorithms and Applications").
+
+Conventions: a batch has B transitions; actions live in [-1, 1]^nu as ``a = tanh(u)`` with
+``u ~ N(mean, exp(log_std)^2)`` (the pre-squash sample ``u``); ``alpha`` is the entropy temperature; log-probs are
+of the squashed action ``a`` (nats). Every function is differentiable with ``jax.grad`` and has worked-number tests
+in ``tests/test_sac.py``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+def gaussian_log_prob(u, mean, log_std):
+    """Log density of a diagonal Gaussian, summed over the last axis: ``(..., nu) -> (...)``."""
+    z = (u - mean) * jnp.exp(-log_std)
+    return jnp.sum(-0.5 * z**2 - log_std - 0.5 * _LOG_2PI, axis=-1)
+
+
+def log1m_tanh_sq(u):
+    """``log(1 - tanh(u)^2)`` computed stably as ``2 (log 2 - u - softplus(-2 u))`` (finite for any |u|)."""
+    return 2.0 * (math.log(2.0) - u - jax.nn.softplus(-2.0 * u))
+
+
+def tanh_gaussian_log_prob(u, mean, log_std):
+    """Log density of ``a = tanh(u)``, ``u ~ N(mean, exp(log_std)^2)``, evaluated at the pre-squash ``u``.
+
+    Change of variables: ``log p(a) = log N(u) - sum_i log(1 - tanh(u_i)^2)`` (the Jacobian of tanh is diagonal).
+
+    Args:
+        u: (..., nu) pre-squash sample. mean, log_std: (..., nu).
+
+    Returns:
+        (...) log-prob of the squashed action.
+    """
+    return gaussian_log_prob(u, mean, log_std) - jnp.sum(log1m_tanh_sq(u), axis=-1)
+
+
+def sample_tanh_gaussian(key, mean, log_std):
+    """Reparameterised sample ``a = tanh(mean + exp(log_std) * eps)`` and its log-prob.
+
+    Returns:
+        ``(a, log_prob)``: a (..., nu) in (-1, 1) (may round to +-1 in float32), log_prob (...).
+    """
+    u = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape, mean.dtype)
+    return jnp.tanh(u), tanh_gaussian_log_prob(u, mean, log_std)
+
+
+def critic_target(reward, terminated, next_q, next_log_prob, alpha, gamma):
+    """Soft Bellman target ``y = r + gamma (1 - terminated) (min_j Q'_j(s', a') - alpha log pi(a'|s'))``.
+
+    ``terminated`` stops bootstrapping (the episode truly ended: the value after it is 0); a *truncated* episode
+    (time limit) is stored with ``terminated = 0`` and the final observation as ``s'``, so it bootstraps.
+
+    Args:
+        reward: (B,) reward (already scaled). terminated: (B,) 0/1 or bool. next_q: (2, B) the target critics at
+            ``(s', a')`` with ``a' ~ pi(.|s')``. next_log_prob: (B,) ``log pi(a'|s')``. alpha: scalar temperature.
+        gamma: discount.
+
+    Returns:
+        (B,) targets; callers stop their gradient.
+    """
+    soft_value = jnp.min(next_q, axis=0) - alpha * next_log_prob
+    return reward + gamma * (1.0 - terminated.astype(reward.dtype)) * soft_value
+
+
+def critic_loss(q, target):
+    """Twin-critic regression loss ``sum_j 1/2 mean_b (Q_j(s_b, a_b) - y_b)^2``.
+
+    Args:
+        q: (2, B) both critics at the replayed ``(s, a)``. target: (B,) from ``critic_target`` (gradient stopped
+            here).
+
+    Returns:
+        scalar loss.
+    """
+    return 0.5 * jnp.sum(jnp.mean((q - jax.lax.stop_gradient(target)[None]) ** 2, axis=-1))
+
+
+def actor_loss(q, log_prob, alpha):
+    """Policy loss ``mean_b (alpha log pi(a_b|s_b) - min_j Q_j(s_b, a_b))`` with ``a_b`` the reparameterised sample.
+
+    Args:
+        q: (2, B) the online critics at ``(s, a ~ pi)``. log_prob: (B,). alpha: scalar temperature (gradient
+            stopped here: the actor does not move the temperature).
+
+    Returns:
+        scalar loss (its gradient flows into the actor through ``a`` and ``log_prob``).
+    """
+    return jnp.mean(jax.lax.stop_gradient(alpha) * log_prob - jnp.min(q, axis=0))
+
+
+def temperature_loss(log_alpha, log_prob, target_entropy):
+    """Temperature loss ``mean_b alpha (-log pi(a_b|s_b) - target_entropy)``, ``alpha = exp(log_alpha)``.
+
+    Its gradient in ``log_alpha`` is ``alpha (H_hat - target_entropy)`` with ``H_hat = -mean log pi``: the
+    temperature falls while the policy's entropy is above the target and rises below it.
+
+    Args:
+        log_alpha: scalar, the optimised variable. log_prob: (B,) (gradient stopped here). target_entropy: scalar
+            (``-nu`` by default).
+
+    Returns:
+        scalar loss.
+    """
+    return jnp.mean(jnp.exp(log_alpha) * (-jax.lax.stop_gradient(log_prob) - target_entropy))
+
+
+def polyak_update(target, online, tau):
+    """``target <- (1 - tau) target + tau online`` leaf by leaf (pytrees of equal structure)."""
+    return jax.tree.map(lambda t, o: (1.0 - tau) * t + tau * o, target, online)

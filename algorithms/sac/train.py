@@ -1,0 +1,426 @@
+"""Soft actor-critic in JAX: the whole training loop is one pure function of a key and the env params.
+
+One *iteration* collects ``rollout_steps`` control steps in each of the ``num_envs`` auto-resetting copies
+(``algorithms.rl.envs.TrainEnv``, actions in [-1, 1]), writes the transitions to the replay buffer, merges their
+observations into the running normaliser, then takes ``utd * num_envs * rollout_steps`` gradient steps. Each
+gradient step samples a batch uniformly from the buffer and updates, in this order, the twin critics (soft Bellman
+target from the Polyak-averaged target critics, no bootstrapping where the episode *terminated*; a time-limit
+truncation bootstraps from the stored final observation), the actor (reparameterised tanh-Gaussian, against the
+freshly updated critics), the temperature (towards the entropy target ``target_entropy_per_action * nu``), and the
+target critics (``tau``). The first ``warmup_iterations`` act uniformly at random and do not learn.
+
+``make_train(config, env)(key, params)`` runs the budget with two ``lax.scan``-s (warm-up, learning): jit it, vmap
+it over keys for seeds. ``make_learner(config, env)`` exposes the same iteration to the host driver
+(``algorithms.rl.training.run_training``), choosing warm-up or learning with ``lax.cond`` on the iteration count.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from typing import Any, NamedTuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import optax
+
+from algorithms.rl import envs as rl_envs
+from algorithms.rl.networks import MLP
+from algorithms.rl.normalization import RunningStats, init_stats, normalize, update_stats
+from algorithms.sac import losses, replay
+from algorithms.sac.config import Config, parse_config
+from scg_jax._pytree import pytree_dataclass
+
+NAME = "sac"
+
+
+# --------------------------------------------------------------------------------------------- networks
+class Actor(nn.Module):
+    """Tanh-squashed Gaussian policy head: ``obs (..., obs_size) -> (mean, log_std)``, each (..., action_size).
+
+    ``log_std`` depends on the observation and is clipped to ``[log_std_min, log_std_max]``; the action is
+    ``tanh(mean + exp(log_std) eps)`` (deterministic: ``tanh(mean)``).
+    """
+
+    hidden: tuple[int, ...]
+    action_size: int
+    activation: str = "relu"
+    log_std_min: float = -5.0
+    log_std_max: float = 2.0
+
+    @nn.compact
+    def __call__(self, obs):
+        # A small final layer starts every copy near mean 0, std 1: broad exploration and no saturated tanh.
+        out = MLP((*self.hidden, 2 * self.action_size), self.activation, final_scale=0.01)(obs)
+        mean, log_std = jnp.split(out, 2, axis=-1)
+        return mean, jnp.clip(log_std, self.log_std_min, self.log_std_max)
+
+
+class Critic(nn.Module):
+    """One soft Q network: ``(obs (..., obs_size), action (..., action_size)) -> Q (...)``."""
+
+    hidden: tuple[int, ...]
+    activation: str = "relu"
+
+    @nn.compact
+    def __call__(self, obs, action):
+        return MLP((*self.hidden, 1), self.activation)(jnp.concatenate([obs, action], axis=-1))[..., 0]
+
+
+def make_networks(config: Config, action_size: int) -> tuple[Actor, Critic]:
+    """The actor and critic modules of ``config``."""
+    actor = Actor(config.hidden, action_size, config.activation, config.log_std_min, config.log_std_max)
+    return actor, Critic(config.hidden, config.activation)
+
+
+def twin_q(critic: Critic, critic_params, obs, action):
+    """Both critics: ``critic_params`` holds two parameter sets stacked on a leading axis. Returns (2, ...)."""
+    return jax.vmap(critic.apply, in_axes=(0, None, None))(critic_params, obs, action)
+
+
+# --------------------------------------------------------------------------------------------- policy
+class PolicyParams(NamedTuple):
+    """What a SAC policy needs to act: the actor's flax params and the observation normaliser."""
+
+    actor: Any
+    obs_stats: RunningStats
+
+
+def make_policy_fn(config: Config, action_size: int) -> Callable:
+    """``policy_fn(policy_params, obs, key=None) -> a``: a sampled action in [-1, 1]^nu (``tanh(mean)`` when
+    ``key`` is None, the deterministic policy used for evaluation). Works on (obs_size,) or batched obs."""
+    actor, _ = make_networks(config, action_size)
+
+    def policy_fn(policy_params: PolicyParams, obs, key=None):
+        if config.normalize_observations:
+            obs = normalize(policy_params.obs_stats, obs)
+        mean, log_std = actor.apply(policy_params.actor, obs)
+        if key is None:
+            return jnp.tanh(mean)
+        action, _ = losses.sample_tanh_gaussian(key, mean, log_std)
+        return action
+
+    return policy_fn
+
+
+def make_policy_from_config(config_dict: Mapping | Config, obs_size: int, action_size: int):
+    """Rebuild a saved SAC policy: ``(init, apply)`` for ``algorithms.rl.policy.load_policy``.
+
+    Args:
+        config_dict: the saved ``Config.to_dict()`` (or a ``Config``). obs_size, action_size: of the env.
+
+    Returns:
+        ``init(key) -> PolicyParams`` (the structure to restore a checkpoint into) and
+        ``apply(policy_params, obs, key=None) -> a`` in [-1, 1]^nu (deterministic when ``key`` is None).
+    """
+    config = parse_config(config_dict)
+    actor, _ = make_networks(config, action_size)
+
+    def init(key) -> PolicyParams:
+        return PolicyParams(actor=actor.init(key, jnp.zeros((obs_size,))), obs_stats=init_stats(obs_size))
+
+    return init, make_policy_fn(config, action_size)
+
+
+# --------------------------------------------------------------------------------------------- state
+@pytree_dataclass
+class RunnerState:
+    """Everything the training loop carries (a pytree; checkpointable).
+
+    Attributes:
+        actor, critic, target_critic: flax params (critics: two sets stacked on a leading axis).
+        log_alpha: scalar log temperature. actor_opt, critic_opt, alpha_opt: optax states.
+        buffer: ``replay.ReplayBuffer`` of dicts ``obs, action, reward, next_obs, terminated, cost``.
+        obs_stats: ``RunningStats`` of the observations collected so far.
+        env_state, obs: batched env state and the observations (N, obs_size) to act on next.
+        episode_stats: running per-copy episode sums. last_episode: the episode means last reported.
+        key: PRNG key. iteration, env_steps, grad_steps: int32 counters.
+    """
+
+    actor: Any
+    critic: Any
+    target_critic: Any
+    log_alpha: Any
+    actor_opt: Any
+    critic_opt: Any
+    alpha_opt: Any
+    buffer: replay.ReplayBuffer
+    obs_stats: RunningStats
+    env_state: Any
+    obs: Any
+    episode_stats: Any
+    last_episode: dict
+    key: Any
+    iteration: Any
+    env_steps: Any
+    grad_steps: Any
+
+
+LOSS_METRICS = ("critic_loss", "actor_loss", "alpha_loss", "alpha", "entropy", "q_mean")
+
+
+def _optimizer(learning_rate: float, max_grad_norm: float):
+    adam = optax.adam(learning_rate)
+    return optax.chain(optax.clip_by_global_norm(max_grad_norm), adam) if max_grad_norm > 0 else adam
+
+
+class _Parts(NamedTuple):
+    train_env: rl_envs.TrainEnv
+    init: Callable
+    iteration: Callable
+
+
+def _build(config: Config, env) -> _Parts:
+    """The pure ``init(key, params)`` and ``iteration(state, params, learning)`` of ``config`` on ``env``."""
+    train_env = rl_envs.make_train_env(env, config.num_envs)
+    obs_size, action_size = train_env.obs_size, train_env.action_size
+    actor, critic = make_networks(config, action_size)
+    policy_fn = make_policy_fn(config, action_size)
+    actor_tx = _optimizer(config.actor_lr, config.max_grad_norm)
+    critic_tx = _optimizer(config.critic_lr, config.max_grad_norm)
+    alpha_tx = optax.adam(config.alpha_lr)
+    target_entropy = config.target_entropy_per_action * action_size
+    num_envs, batch_size = config.num_envs, config.batch_size
+    norm = (lambda stats, obs: normalize(stats, obs)) if config.normalize_observations else (lambda stats, obs: obs)
+
+    def init(key, params) -> RunnerState:
+        key_env, key_actor, key_critic, key = jax.random.split(key, 4)
+        obs, env_state = train_env.reset(key_env, params)
+        dummy_obs, dummy_action = jnp.zeros((obs_size,)), jnp.zeros((action_size,))
+        actor_params = actor.init(key_actor, dummy_obs)
+        critic_params = jax.vmap(critic.init, in_axes=(0, None, None))(
+            jax.random.split(key_critic, 2), dummy_obs, dummy_action
+        )
+        log_alpha = jnp.asarray(math.log(config.init_alpha), jnp.float32)
+        example = {
+            "obs": dummy_obs,
+            "action": dummy_action,
+            "reward": jnp.zeros(()),
+            "next_obs": dummy_obs,
+            "terminated": jnp.zeros(()),
+            "cost": jnp.zeros(()),
+        }
+        return RunnerState(
+            actor=actor_params,
+            critic=critic_params,
+            target_critic=critic_params,
+            log_alpha=log_alpha,
+            actor_opt=actor_tx.init(actor_params),
+            critic_opt=critic_tx.init(critic_params),
+            alpha_opt=alpha_tx.init(log_alpha),
+            buffer=replay.init_buffer(config.capacity, example),
+            obs_stats=init_stats(obs_size),
+            env_state=env_state,
+            obs=obs.astype(jnp.float32),
+            episode_stats=rl_envs.init_episode_stats(num_envs),
+            last_episode=rl_envs.initial_episode_means(),
+            key=key,
+            iteration=jnp.zeros((), jnp.int32),
+            env_steps=jnp.zeros((), jnp.int32),
+            grad_steps=jnp.zeros((), jnp.int32),
+        )
+
+    def gradient_step(carry, key):
+        actor_params, critic_params, target_params, log_alpha, actor_opt, critic_opt, alpha_opt, buffer, stats = carry
+        key_sample, key_next, key_pi = jax.random.split(key, 3)
+        batch = replay.sample(buffer, key_sample, batch_size)
+        obs, next_obs = norm(stats, batch["obs"]), norm(stats, batch["next_obs"])
+        alpha = jnp.exp(log_alpha)
+
+        next_mean, next_log_std = actor.apply(actor_params, next_obs)
+        next_action, next_log_prob = losses.sample_tanh_gaussian(key_next, next_mean, next_log_std)
+        next_q = twin_q(critic, target_params, next_obs, next_action)
+        target = losses.critic_target(
+            config.reward_scale * batch["reward"], batch["terminated"], next_q, next_log_prob, alpha, config.gamma
+        )
+        target = jax.lax.stop_gradient(target)
+
+        def critic_objective(c_params):
+            q = twin_q(critic, c_params, obs, batch["action"])
+            return losses.critic_loss(q, target), q
+
+        (critic_loss, q), critic_grads = jax.value_and_grad(critic_objective, has_aux=True)(critic_params)
+        updates, critic_opt = critic_tx.update(critic_grads, critic_opt, critic_params)
+        critic_params = optax.apply_updates(critic_params, updates)
+
+        def actor_objective(a_params):
+            mean, log_std = actor.apply(a_params, obs)
+            action, log_prob = losses.sample_tanh_gaussian(key_pi, mean, log_std)
+            q_pi = twin_q(critic, critic_params, obs, action)
+            return losses.actor_loss(q_pi, log_prob, alpha), log_prob
+
+        (actor_loss, log_prob), actor_grads = jax.value_and_grad(actor_objective, has_aux=True)(actor_params)
+        updates, actor_opt = actor_tx.update(actor_grads, actor_opt, actor_params)
+        actor_params = optax.apply_updates(actor_params, updates)
+
+        alpha_loss, alpha_grad = jax.value_and_grad(losses.temperature_loss)(log_alpha, log_prob, target_entropy)
+        if config.autotune_alpha:
+            updates, alpha_opt = alpha_tx.update(alpha_grad, alpha_opt, log_alpha)
+            log_alpha = optax.apply_updates(log_alpha, updates)
+
+        target_params = losses.polyak_update(target_params, critic_params, config.tau)
+        metrics = {
+            "critic_loss": critic_loss,
+            "actor_loss": actor_loss,
+            "alpha_loss": alpha_loss,
+            "alpha": alpha,
+            "entropy": -jnp.mean(log_prob),
+            "q_mean": jnp.mean(q),
+        }
+        carry = (actor_params, critic_params, target_params, log_alpha, actor_opt, critic_opt, alpha_opt, buffer, stats)
+        return carry, metrics
+
+    def learn(carry, key):
+        carry, step_metrics = jax.lax.scan(gradient_step, carry, jax.random.split(key, config.grad_steps_per_iteration))
+        return carry, jax.tree.map(lambda m: jnp.mean(m).astype(jnp.float32), step_metrics)
+
+    def skip(carry, key):
+        metrics = {name: jnp.zeros((), jnp.float32) for name in LOSS_METRICS}
+        return carry, {**metrics, "alpha": jnp.exp(carry[3]).astype(jnp.float32)}
+
+    def iteration(state: RunnerState, params, learning):
+        """One iteration; ``learning`` (bool scalar, may be traced) selects policy actions and gradient steps, or
+        uniform random actions and none (warm-up). A ``learning`` that does not depend on vmapped values keeps
+        the ``lax.cond`` a real branch under ``jax.vmap``, so warm-up iterations skip the gradient work."""
+        key, key_collect, key_learn = jax.random.split(state.key, 3)
+        policy_params = PolicyParams(state.actor, state.obs_stats)
+
+        def env_step(carry, key_step):
+            env_state, obs, episode_stats = carry
+            key_policy, key_random = jax.random.split(key_step)
+            policy_action = jax.vmap(policy_fn, in_axes=(None, 0, 0))(
+                policy_params, obs, jax.random.split(key_policy, num_envs)
+            )
+            random_action = jax.random.uniform(key_random, (num_envs, action_size), minval=-1.0, maxval=1.0)
+            action = jnp.where(learning, policy_action, random_action)
+            out = train_env.step(env_state, action, params)
+            episode_stats, finished = rl_envs.update_episode_stats(episode_stats, out)
+            transition = {
+                "obs": obs,
+                "action": action,
+                "reward": out.reward,
+                "next_obs": out.final_obs,
+                "terminated": out.terminated,
+                "cost": out.cost,
+            }
+            return (out.state, out.obs.astype(jnp.float32), episode_stats), (transition, finished)
+
+        (env_state, obs, episode_stats), (transitions, finished) = jax.lax.scan(
+            env_step,
+            (state.env_state, state.obs, state.episode_stats),
+            jax.random.split(key_collect, config.rollout_steps),
+        )
+        flat = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), transitions)
+        buffer = replay.add(state.buffer, flat)
+        obs_stats = update_stats(state.obs_stats, flat["obs"]) if config.normalize_observations else state.obs_stats
+
+        carry = (
+            state.actor,
+            state.critic,
+            state.target_critic,
+            state.log_alpha,
+            state.actor_opt,
+            state.critic_opt,
+            state.alpha_opt,
+            buffer,
+            obs_stats,
+        )
+        carry, loss_metrics = jax.lax.cond(learning, learn, skip, carry, key_learn)
+        num_grad = jnp.where(learning, config.grad_steps_per_iteration, 0).astype(jnp.int32)
+        actor_params, critic_params, target_params, log_alpha, actor_opt, critic_opt, alpha_opt, _, _ = carry
+
+        episode = rl_envs.episode_means(finished, state.last_episode)
+        last_episode = {name: episode[name] for name in rl_envs.EPISODE_METRICS}
+        new_state = RunnerState(
+            actor=actor_params,
+            critic=critic_params,
+            target_critic=target_params,
+            log_alpha=log_alpha,
+            actor_opt=actor_opt,
+            critic_opt=critic_opt,
+            alpha_opt=alpha_opt,
+            buffer=buffer,
+            obs_stats=obs_stats,
+            env_state=env_state,
+            obs=obs,
+            episode_stats=episode_stats,
+            last_episode=last_episode,
+            key=key,
+            iteration=state.iteration + 1,
+            env_steps=state.env_steps + config.transitions_per_iteration,
+            grad_steps=state.grad_steps + num_grad,
+        )
+        metrics = {
+            "env_steps": new_state.env_steps.astype(jnp.float32),
+            "grad_steps": new_state.grad_steps.astype(jnp.float32),
+            **episode,
+            **{name: loss_metrics[name].astype(jnp.float32) for name in LOSS_METRICS},
+        }
+        return new_state, metrics
+
+    return _Parts(train_env, init, iteration)
+
+
+# --------------------------------------------------------------------------------------------- public API
+def make_train(config: Config | Mapping | None, env) -> Callable:
+    """``train(key, params) -> (runner_state, metrics)``: the whole budget, jit- and vmap-able (over keys).
+
+    Args:
+        config: a ``Config`` or a ``training.sac`` mapping. env: an ``scg_jax.Env`` (any ``action_mode``).
+
+    Returns:
+        ``train``: ``key`` a PRNG key, ``params`` unbatched ``EnvParams``; ``metrics`` a dict of
+        (num_iterations,) arrays: ``env_steps``, ``grad_steps``, ``episode_return``, ``episode_cost``,
+        ``episode_rmse``, ``episode_length``, ``episodes_finished`` and the means over the iteration's gradient
+        steps of ``critic_loss``, ``actor_loss``, ``alpha_loss``, ``alpha``, ``entropy``, ``q_mean`` (0 during
+        warm-up).
+    """
+    config = parse_config(config)
+    parts = _build(config, env)
+    warmup = config.warmup_iterations
+
+    def train(key, params):
+        state = parts.init(key, params)
+        # The iteration index comes from the scan's xs, not from the (possibly vmapped) state, so the warm-up
+        # test stays unbatched under jax.vmap and its lax.cond keeps skipping the gradient steps.
+        return jax.lax.scan(
+            lambda s, i: parts.iteration(s, params, i >= warmup), state, jnp.arange(config.num_iterations)
+        )
+
+    return train
+
+
+def policy_params(state: RunnerState) -> PolicyParams:
+    """The part of the runner state a policy needs (saved as ``policy.msgpack`` by the host driver)."""
+    return PolicyParams(actor=state.actor, obs_stats=state.obs_stats)
+
+
+def make_learner(config: Config | Mapping | None, env):
+    """``algorithms.rl.training.Learner`` for the host driver (``run_training``).
+
+    ``update`` is one iteration; warm-up or learning is chosen from ``runner_state.iteration``, so a chain of
+    ``num_iterations`` updates is the same computation as ``make_train``.
+    """
+    from algorithms.rl.training import Learner
+
+    config = parse_config(config)
+    parts = _build(config, env)
+    warmup = config.warmup_iterations
+    policy_fn = make_policy_fn(config, parts.train_env.action_size)
+
+    def update(state: RunnerState, params):
+        return parts.iteration(state, params, state.iteration >= warmup)
+
+    def make_policy(p: PolicyParams):
+        return lambda obs, key=None: policy_fn(p, obs, key)
+
+    return Learner(
+        name=NAME,
+        config=config,
+        init=parts.init,
+        update=update,
+        num_iterations=config.num_iterations,
+        policy_params=policy_params,
+        make_policy=make_policy,
+    )

@@ -1,0 +1,261 @@
+"""Shared RL infrastructure: running observation statistics against numpy, checkpoints of any pytree, the training
+env's episode bookkeeping, and ``run_training``'s resume (N iterations in one go = N/2, then N/2 resumed)."""
+
+import csv
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import serialization
+
+import scg_jax
+from algorithms.ppo import make_learner
+from algorithms.rl.checkpoint import load_checkpoint, load_metadata, save_checkpoint
+from algorithms.rl.envs import (
+    episode_means,
+    init_episode_stats,
+    initial_episode_means,
+    make_train_env,
+    update_episode_stats,
+)
+from algorithms.rl.normalization import RunningStats, init_stats, normalize, update_stats
+from algorithms.rl.training import run_training
+from algorithms.sac.replay import ReplayBuffer
+
+
+# --------------------------------------------------------------------------------------------- normalisation
+def test_running_stats_equal_numpy_over_the_concatenated_batches():
+    with jax.enable_x64(True):
+        rng = np.random.default_rng(0)
+        # Batches of different sizes (one of a single sample) from different distributions.
+        sizes = ((1, 5.0, 1.0), (7, -2.0, 3.0), (100, 0.5, 0.1), (3, 10.0, 2.0))
+        batches = [rng.normal(loc, scale, size=(n, 3)) for n, loc, scale in sizes]
+        stats = init_stats(3, jnp.float64)
+        update = jax.jit(update_stats)
+        for i, batch in enumerate(batches):
+            stats = update(stats, batch)
+            seen = np.concatenate(batches[: i + 1])
+            np.testing.assert_allclose(stats.mean, seen.mean(axis=0), rtol=1e-12)
+            np.testing.assert_allclose(stats.var, seen.var(axis=0), rtol=1e-12)  # population variance, ddof = 0
+            assert float(stats.count) == len(seen)
+
+
+def test_running_stats_are_accurate_in_float32_far_from_zero():
+    """A mean of 1e4 and a standard deviation of 0.1: E[x^2] - E[x]^2 in float32 would lose every digit of the
+    variance (1e8 with a resolution of 8), the pairwise merge keeps it to a fraction of a percent."""
+    rng = np.random.default_rng(1)
+    batches = [1e4 + 0.1 * rng.normal(size=(64, 2)) for _ in range(20)]
+    stats = init_stats(2)
+    for batch in batches:
+        stats = update_stats(stats, jnp.asarray(batch, jnp.float32))
+    seen = np.concatenate(batches)
+    np.testing.assert_allclose(stats.mean, seen.mean(axis=0), rtol=1e-6)
+    np.testing.assert_allclose(stats.var, seen.var(axis=0), rtol=1e-2)
+
+
+def test_running_stats_flatten_leading_axes_and_normalize():
+    rng = np.random.default_rng(2)
+    rollout = rng.normal([1.0, -3.0], [2.0, 0.5], size=(16, 8, 2)).astype(np.float32)  # (T, N, obs)
+    stats = update_stats(init_stats(2), rollout)
+    flat = rollout.reshape(-1, 2)
+    np.testing.assert_allclose(stats.mean, flat.mean(axis=0), rtol=1e-5)
+    np.testing.assert_allclose(stats.var, flat.var(axis=0), rtol=1e-5)
+    normalized = normalize(stats, flat)
+    np.testing.assert_allclose(np.mean(normalized, axis=0), 0.0, atol=1e-5)
+    np.testing.assert_allclose(np.var(normalized, axis=0), 1.0, rtol=1e-4)
+    # Before any update the normaliser is the identity, up to the clip at +-clip.
+    x = jnp.array([[-20.0, 0.3], [4.0, 15.0]])
+    np.testing.assert_allclose(normalize(init_stats(2), x, clip=10.0), [[-10.0, 0.3], [4.0, 10.0]], rtol=1e-6)
+    np.testing.assert_allclose(normalize(stats, 1e6 * jnp.ones(2), clip=5.0), 5.0)
+
+
+# --------------------------------------------------------------------------------------------- checkpoints
+def _example_tree():
+    return {
+        "net": {"w": jnp.arange(12.0).reshape(3, 4), "b": jnp.array([0.5, -1.5, 2.0, 0.0])},
+        "stats": RunningStats(mean=jnp.array([1.0, 2.0]), var=jnp.array([3.0, 4.0]), count=jnp.array(7.0)),
+        "buffer": ReplayBuffer(
+            data={"x": jnp.arange(10, dtype=jnp.int32).reshape(5, 2)},
+            position=jnp.array(3, jnp.int32),
+            size=jnp.array(5, jnp.int32),
+        ),
+        "flags": jnp.array([True, False, True]),
+        "key": jax.random.key(42),
+        "raw_key": jax.random.PRNGKey(7),
+        "steps": [jnp.array(1, jnp.int32), jnp.array(2.5, jnp.float32)],
+    }
+
+
+def _zeros_like_tree(tree):
+    """Same structure and dtypes, other values (typed keys: another key)."""
+    is_key = lambda x: jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)  # noqa: E731
+    return jax.tree.map(lambda x: jax.random.key(0) if is_key(x) else jnp.zeros_like(x), tree)
+
+
+def test_checkpoint_round_trip_of_a_mixed_pytree(tmp_path):
+    tree = _example_tree()
+    save_checkpoint(tmp_path, "state", tree, {"algo": "test", "iteration": 3})
+    for target in (jax.eval_shape(lambda: tree), _zeros_like_tree(tree)):
+        restored, meta = load_checkpoint(tmp_path, "state", target)
+        assert jax.tree.structure(restored) == jax.tree.structure(tree)
+        assert isinstance(restored["stats"], RunningStats) and isinstance(restored["buffer"], ReplayBuffer)
+        for name in ("net", "stats", "buffer", "flags", "raw_key", "steps"):
+            for got, want in zip(jax.tree.leaves(restored[name]), jax.tree.leaves(tree[name]), strict=True):
+                assert np.asarray(got).dtype == np.asarray(want).dtype
+                np.testing.assert_array_equal(got, want)
+        # A typed key comes back typed and draws the same numbers.
+        assert jax.dtypes.issubdtype(restored["key"].dtype, jax.dtypes.prng_key)
+        np.testing.assert_array_equal(jax.random.normal(restored["key"], (3,)), jax.random.normal(tree["key"], (3,)))
+        assert meta["algo"] == "test" and meta["iteration"] == 3
+    # The arrays file is a flat mapping from leaf paths to arrays, readable without the code that wrote it.
+    stored = serialization.msgpack_restore((tmp_path / "state.msgpack").read_bytes())
+    np.testing.assert_array_equal(stored["['net']['w']"], tree["net"]["w"])
+    meta = load_metadata(tmp_path, "state")
+    assert meta["checkpoint"]["format"] == "scg-jax-pytree-v1" and len(meta["checkpoint"]["sha256"]) == 64
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["state.json", "state.msgpack"]  # no temporary files left
+
+
+def test_checkpoint_detects_mismatched_files_and_structures(tmp_path):
+    tree = _example_tree()
+    save_checkpoint(tmp_path / "a", "state", tree, {})
+    other = jax.tree.map(lambda x: x, tree)
+    other["net"]["w"] = other["net"]["w"] + 1.0
+    save_checkpoint(tmp_path / "b", "state", other, {})
+    target = jax.eval_shape(lambda: tree)
+    # New arrays beside old metadata (a crash between the two renames) are reported, not silently paired.
+    (tmp_path / "a" / "state.msgpack").write_bytes((tmp_path / "b" / "state.msgpack").read_bytes())
+    with pytest.raises(ValueError, match="does not match state.json"):
+        load_checkpoint(tmp_path / "a", "state", target)
+    restored, _ = load_checkpoint(tmp_path / "b", "state", target)
+    np.testing.assert_array_equal(restored["net"]["w"], other["net"]["w"])
+    # Another structure or shape than the file's.
+    missing = {**target, "extra": jax.ShapeDtypeStruct((2,), jnp.float32)}
+    with pytest.raises(ValueError, match=r"leaves do not match the target structure \(missing \['extra'\]\)"):
+        load_checkpoint(tmp_path / "b", "state", missing)
+    fewer = {name: value for name, value in target.items() if name != "flags"}
+    with pytest.raises(ValueError, match=r"unexpected \['flags'\]"):
+        load_checkpoint(tmp_path / "b", "state", fewer)
+    reshaped = {**target, "flags": jax.ShapeDtypeStruct((4,), jnp.bool_)}
+    with pytest.raises(ValueError, match=r"\['flags'\] has shape \(3,\), expected \(4,\)"):
+        load_checkpoint(tmp_path / "b", "state", reshaped)
+    retyped = {**target, "flags": jax.ShapeDtypeStruct((3,), jnp.int32)}
+    with pytest.raises(ValueError, match=r"\['flags'\] has dtype bool, expected int32"):
+        load_checkpoint(tmp_path / "b", "state", retyped)
+    with pytest.raises(FileNotFoundError):
+        load_checkpoint(tmp_path / "missing", "state", target)
+
+
+def test_checkpoint_with_bad_metadata_writes_nothing(tmp_path):
+    with pytest.raises(TypeError):
+        save_checkpoint(tmp_path, "state", _example_tree(), {"bad": object()})
+    assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------------------------- training env
+def test_train_env_keeps_the_final_observation_and_counts_episodes():
+    # 5-step episodes (0.1 s at 50 Hz) on 3 copies, 7 steps with action 0: each copy is truncated at step 5.
+    env = scg_jax.make("cartpole", episode_len_sec=0.1)
+    params = env.default_params
+    train_env = make_train_env(env, 3)
+
+    @jax.jit
+    def rollout(key):
+        obs, state = train_env.reset(key, params)
+
+        def step(carry, _):
+            state, stats = carry
+            out = train_env.step(state, jnp.zeros((3, 1)), params)
+            stats, finished = update_episode_stats(stats, out)
+            return (out.state, stats), (out, finished)
+
+        return obs, jax.lax.scan(step, (state, init_episode_stats(3)), None, 7)[1]
+
+    _, (out, finished) = rollout(jax.random.key(0))
+    done = np.asarray(out.truncated)
+    np.testing.assert_array_equal(done, np.tile((np.arange(7) == 4)[:, None], (1, 3)))
+    assert not np.any(out.terminated)
+    # The final observation is the reached one; the observation to act on next is a fresh episode's.
+    np.testing.assert_array_equal(out.final_obs[:4], out.obs[:4])
+    assert np.all(np.any(out.final_obs[4] != out.obs[4], axis=-1))
+    # The finished episodes' totals: 5 steps, the return is the sum of the 5 rewards.
+    np.testing.assert_array_equal(finished.episode_length[4], 5.0)
+    np.testing.assert_allclose(finished.episode_return[4], np.sum(out.reward[:5], axis=0), rtol=1e-6)
+    np.testing.assert_allclose(finished.episode_rmse[4], np.sqrt(np.mean(out.info["mse"][:5], axis=0)), rtol=1e-6)
+    means = episode_means(finished, initial_episode_means())
+    np.testing.assert_allclose(means["episode_return"], np.mean(np.sum(out.reward[:5], axis=0)), rtol=1e-6)
+    assert float(means["episodes_finished"]) == 3.0
+    # Where no episode finished, the previous means are repeated.
+    nothing = jax.tree.map(lambda x: x[:4], finished)
+    previous = {name: jnp.float32(i + 1.0) for i, name in enumerate(initial_episode_means())}
+    repeated = episode_means(nothing, previous)
+    assert {name: float(repeated[name]) for name in previous} == {n: float(v) for n, v in previous.items()}
+    with pytest.raises(ValueError, match="num_envs: must be a positive integer"):
+        make_train_env(env, 0)
+
+
+# --------------------------------------------------------------------------------------------- resume
+# 6 iterations of 8 copies x 16 steps.
+TINY_PPO = {
+    "total_env_steps": 768,
+    "num_envs": 8,
+    "rollout_length": 16,
+    "num_epochs": 2,
+    "num_minibatches": 2,
+    "actor_hidden": [16, 16],
+    "critic_hidden": [16, 16],
+}
+ITERATIONS = 6
+
+
+def _read_csv(path):
+    with open(path, newline="") as file:
+        rows = list(csv.reader(file))
+    return rows[0], rows[1:]
+
+
+@pytest.fixture(scope="module")
+def resume_runs(tmp_path_factory):
+    """PPO trained for 6 iterations in one go (adaptive chunks), and for 3 then resumed for 3 (chunks of 2)."""
+    env = scg_jax.make("cartpole")
+    params, key = env.default_params, jax.random.key(11)
+    learner = make_learner(TINY_PPO, env)
+    whole_dir, split_dir = tmp_path_factory.mktemp("whole"), tmp_path_factory.mktemp("split")
+    whole = run_training(learner, env, params, key, whole_dir, progress=False)
+    half = learner._replace(num_iterations=ITERATIONS // 2)
+    first = run_training(half, env, params, key, split_dir, chunk=2, progress=False)
+    first_checkpoint = json.loads((split_dir / "checkpoint.json").read_text())
+    second = run_training(learner, env, params, key, split_dir, chunk=2, resume=True, progress=False)
+    return env, params, key, learner, (whole_dir, whole), (split_dir, first, first_checkpoint, second)
+
+
+def test_resumed_training_is_bit_identical_to_an_uninterrupted_run(resume_runs):
+    env, params, key, learner, (whole_dir, whole), (split_dir, first, first_checkpoint, second) = resume_runs
+    assert first["iterations"] == ITERATIONS // 2 and first_checkpoint["iteration"] == ITERATIONS // 2
+    assert second["resumed_from_iteration"] == ITERATIONS // 2
+    assert whole["iterations"] == second["iterations"] == ITERATIONS
+    assert whole["env_steps"] == second["env_steps"] == 768
+    target = jax.eval_shape(learner.init, jax.random.key_data(key), params)
+    whole_state, whole_meta = load_checkpoint(whole_dir, "checkpoint", target)
+    split_state, split_meta = load_checkpoint(split_dir, "checkpoint", target)
+    assert whole_meta["iteration"] == split_meta["iteration"] == ITERATIONS
+    for a, b in zip(jax.tree.leaves(whole_state), jax.tree.leaves(split_state), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert int(whole_state.env_steps) == 768
+    assert (whole_dir / "policy.msgpack").read_bytes() == (split_dir / "policy.msgpack").read_bytes()
+    # progress.csv: one row per iteration, the same metrics (wall times aside).
+    whole_header, whole_rows = _read_csv(whole_dir / "progress.csv")
+    split_header, split_rows = _read_csv(split_dir / "progress.csv")
+    assert whole_header == split_header and whole_header[:3] == ["iteration", "env_steps", "wall_time_s"]
+    assert [row[0] for row in split_rows] == [str(i) for i in range(1, ITERATIONS + 1)]
+    drop_time = lambda rows: [row[:2] + row[3:] for row in rows]  # noqa: E731
+    assert drop_time(whole_rows) == drop_time(split_rows)
+    assert (whole_dir / "learning_curve.png").stat().st_size > 0
+
+
+def test_resume_with_another_config_is_refused(resume_runs, tmp_path):
+    env, params, key, _, _, (split_dir, *_) = resume_runs
+    other = make_learner({**TINY_PPO, "learning_rate": 3e-4}, env)
+    with pytest.raises(ValueError, match="resume: .*checkpoint.json was written by 'ppo' with another config"):
+        run_training(other, env, params, key, split_dir, resume=True, progress=False)
