@@ -100,7 +100,8 @@ def test_eval_writes_the_paper_metrics_consistent_with_the_data(tmp_path):
     record = json.loads(out.read_text())
     for key in ("rmse", "rmse_std", "worst_case_rmse_at_0.5", "failure_rate", "constraint_violation_steps"):
         assert isinstance(record[key], float)
-    assert record["return"] < 0 and record["length"] == 50 and record["controller"] == "lqr"
+    # exponential reward (the config's): each step earns exp(-c) in (0, 1]
+    assert 0 < record["return"] <= record["length"] == 50 and record["controller"] == "lqr"
     data = np.load(out.with_suffix(".npz"))
     rmse = np.sqrt(data["mse"].mean(axis=0))
     np.testing.assert_allclose(record["per_episode"]["rmse"], rmse, rtol=1e-5)
@@ -140,4 +141,50 @@ def test_eval_and_compare_refuse_bad_input(tmp_path, capsys, args, message):
     out = tmp_path / "bad.json"
     assert main([*args, "--system", "cartpole", "--out", str(out)]) == 2
     assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+# ----------------------------------------------------------------------------------------------- train
+_TINY_PPO = [
+    "--set",
+    "training.ppo.total_env_steps=1024",
+    "--set",
+    "training.ppo.num_envs=16",
+    "--set",
+    "training.ppo.rollout_length=16",
+    "--set",
+    "training.ppo.num_minibatches=2",
+]
+
+
+def test_train_writes_a_policy_that_eval_and_compare_run(tmp_path, capsys):
+    out = tmp_path / "ppo"
+    args = ["train", *_EVAL_ENV[:4], *_TINY_PPO, "--algo", "ppo", "--out", str(out), "--eval-episodes", "4"]
+    assert main(args) == 0
+    for name in ("policy.msgpack", "policy.json", "checkpoint.msgpack", "progress.csv", "learning_curve.png"):
+        assert (out / name).stat().st_size > 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["algo"] == "ppo" and metrics["hyperparameters"]["total_env_steps"] == 1024
+    assert metrics["training"]["env_steps"] == 1024  # 4 iterations of 16 copies x 16 steps
+    rows = (out / "progress.csv").read_text().strip().splitlines()
+    assert len(rows) == 1 + 4
+    assert metrics["evaluation"]["num_episodes"] == 4
+    # The saved policy is a controller: scg-jax eval runs it and writes the same metric keys as for LQR.
+    record_path = tmp_path / "eval.json"
+    assert main(["eval", *_EVAL_ENV, "--controller", str(out), "--out", str(record_path)]) == 0
+    record = json.loads(record_path.read_text())
+    assert record["controller"] == "ppo" and record["length"] <= 50 and np.isfinite(record["rmse"])
+    # Same seed, same policy: a second run writes byte-identical policy parameters.
+    again = tmp_path / "again"
+    assert main([*args[:-4], "--out", str(again), "--eval-episodes", "4"]) == 0
+    assert (again / "policy.msgpack").read_bytes() == (out / "policy.msgpack").read_bytes()
+    assert main(["compare", *_EVAL_ENV, "--controllers", f"lqr,{out}"]) == 0
+    assert "ppo" in capsys.readouterr().out
+
+
+def test_train_refuses_bad_hyperparameters(tmp_path, capsys):
+    out = tmp_path / "bad"
+    args = ["train", "--system", "cartpole", "--algo", "ppo", "--set", "training.ppo.gama=0.9", "--out", str(out)]
+    assert main(args) == 2
+    assert "training.ppo.gama: unknown key" in capsys.readouterr().err
     assert not out.exists()
