@@ -1,0 +1,512 @@
+"""Linear MPC: the prior model linearised once on the host, a condensed QP per step, the first input applied.
+
+Two controllers share one ``Options`` dataclass (a config file's ``controllers.linear_mpc`` and
+``controllers.linear_mpc_casadi`` sections; the qpax fields are ignored by the CasADi one):
+
+- ``make_linear_mpc`` (registered ``"linear_mpc"``): a ``JaxController`` whose ``act`` forms the right-hand side
+  of the condensed QP of ``algorithms.mpc.qp`` and solves it with ``qpax`` (a primal-dual interior-point method in
+  JAX); ``jax.vmap`` runs thousands of copies at once.
+- ``make_linear_mpc_casadi`` (registered ``"linear_mpc_casadi"``): the same problem for one copy on the host in the
+  sparse (states kept) form with ``casadi.Opti("conic")`` and qpOASES (default) or OSQP; the constraints are the
+  symbolic model's own ``g`` functions. It is the reference the tests hold the JAX controller to.
+
+Problem at control step ``k`` (observed state ``x_0``, reference ``r_j = x_ref[min(k + j, T)]``)::
+
+    min  1/2 sum_{j=1}^{H-1} |x_j - r_j|_Q^2 + 1/2 |x_H - r_H|_P^2 + 1/2 sum_{j=0}^{H-1} |u_j - u_eq|_R^2
+    s.t. x_{j+1} = Ad_j x_j + Bd_j u_j + c_j                     (prior model linearised, see below)
+         u_low <= u_j <= u_high                                  (actuator limits of the prior physics, hard)
+         g(x_{j+1}, u_j) <= 0  for the env's linear constraints  (input-only rows hard; rows on the state
+                                                                  optionally softened, see ``soft_constraints``)
+
+- **Model**: ``env.symbolic_model(prior_params)`` (the env's integrator and substeps, or one RK4 step with
+  ``discretization="rk4"``) linearised with its ``dfd`` about ``(x_bar, u_eq)``: the goal (one model) or every
+  reference point (``linearize_about="reference"``; stage ``j`` of step ``k`` uses point ``min(k + j, T)``), with
+  the affine offset ``c = fd(x_bar, u_eq) - Ad x_bar - Bd u_eq``, so a moving reference is predicted exactly
+  where the model is linear. ``u_eq`` is the prior's equilibrium input (hover thrust, zero force).
+- **Terminal weight**: ``P`` of the discrete Riccati equation (``algorithms.lqr.discrete_lqr_gain``) at the
+  point of stage ``H``, so without active constraints the first input is the LQR input
+  ``u_eq - K (x_0 - x_ref[k])`` for any horizon (the tests check this).
+- **Constraints**: ``bounded``, ``abs_bound``, ``linear`` and ``default`` constraints (all stored as ``A z - b``)
+  on the state, the input or both, with the values in ``prior_params.constraints``; rows identical to an actuator
+  limit are dropped. ``quadratic`` constraints are not imposed (a linear MPC cannot hold them without a convex
+  reformulation); their indices are listed in ``controller.info["skipped_constraints"]``. The env counts a row as
+  violated when ``g > tolerance``; the MPC imposes ``g <= 0``.
+- **Soft constraints** (``soft_constraints=True``): every row that involves the state gets a slack ``e >= 0``,
+  one shared by all stages (default: the row's worst violation over the horizon) or one per stage
+  (``slack_per_stage=True``; see ``algorithms.mpc.qp`` for how the two behave), at the cost
+  ``slack_l1 * e + 1/2 slack_l2 * e^2`` per slack, so the QP stays feasible when the plant is already outside
+  or cannot avoid leaving the constraint set; input rows stay hard.
+- **Failure handling** (JAX): every solve is checked (status in ``ctrl_state``; ``algorithms.mpc.qp``). A finite
+  iterate feasible within ``feasibility_tol`` is used even if qpax did not report convergence (float32 limits the
+  residual it can reach, see ``algorithms.mpc.qp``); a non-finite or infeasible one (an infeasible QP: hard
+  state constraints that cannot be met, or input rows that contradict the actuator limits) is replaced by the
+  LQR input ``u_eq - K (x_0 - x_ref[k])``. In every case the input is finally clipped to the box of the hard input
+  rows (actuator limits and single-input constraint rows), so the output is never NaN and never commands outside
+  the limits; general (non-box) input rows are only held by the QP. The CasADi controller does the same when
+  its solver reports failure.
+
+Controller memory (JAX): ``LinearMPCState(status, iterations)`` of the last solve, for diagnostics only
+(``algorithms.mpc.qp.STATUS_*``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, ClassVar, NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from algorithms.base import JaxController, option, parse_options, positive, state_from_obs, weight_diagonal
+from algorithms.lqr import discrete_lqr_gain
+from algorithms.mpc import qp as qp_lib
+
+LINEARIZE_ABOUT = ("auto", "goal", "reference")
+TERMINAL_WEIGHTS = ("dare", "stage")
+DISCRETIZATIONS = ("env", "rk4")
+CASADI_SOLVERS = ("qpoases", "osqp")
+PATH = "controllers.linear_mpc"
+CASADI_PATH = "controllers.linear_mpc_casadi"
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """Options of the linear MPC (``controllers.linear_mpc``; ``controllers.linear_mpc_casadi`` has the same fields)."""
+
+    horizon: int = option(20, "prediction horizon H, control steps")
+    q_diag: tuple | None = option(None, "diagonal state weight (nx,); default: the prior's Q")
+    r_diag: tuple | None = option(None, "diagonal input weight (nu,); default: the prior's R")
+    terminal_weight: str = option(
+        "dare",
+        "terminal weight: the discrete Riccati solution P (LQR cost-to-go) or the stage weight Q",
+        choices=TERMINAL_WEIGHTS,
+    )
+    linearize_about: str = option(
+        "auto",
+        "linearise about the goal (one model) or every reference point (one per step); auto: goal for "
+        "stabilization, reference for tracking",
+        choices=LINEARIZE_ABOUT,
+    )
+    discretization: str = option(
+        "env",
+        "prediction model: the env's integrator and substeps, or one RK4 step per control period",
+        choices=DISCRETIZATIONS,
+    )
+    env_constraints: bool = option(True, "impose the env's linear constraints (the actuator limits always hold)")
+    soft_constraints: bool = option(False, "soften the constraint rows that involve the state with slacks >= 0")
+    slack_per_stage: bool = option(
+        False,
+        "one slack per softened row and stage (the total violation costs); false: one per row shared by the "
+        "horizon (its worst violation costs; H times fewer variables)",
+    )
+    slack_l1: float = option(1e3, "L1 weight of a slack in the objective J/2, cost per unit of violation")
+    slack_l2: float = option(1e2, "L2 weight of a slack (1/2 slack_l2 e^2)")
+    prestabilize: bool = option(True, "condense with the LQR-stabilised prediction (u = u_eq - K dx + v)")
+    max_iter: int = option(40, "qpax interior-point iterations at most (float32 solves rarely stop earlier)")
+    solver_tol: float = option(
+        1e-8, "qpax KKT residual tolerance (on the scaled QP; the default runs max_iter, see algorithms.mpc.qp)"
+    )
+    feasibility_tol: float = option(
+        1e-3, "largest constraint violation (row units: m, rad, N) of an unconverged iterate that is still used"
+    )
+    casadi_solver: str = option("qpoases", "conic solver of the CasADi variant", choices=CASADI_SOLVERS)
+
+    def _check(self, path: str) -> None:
+        for name in ("horizon", "max_iter"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{path}.{name}: must be a positive integer, got {getattr(self, name)!r}")
+        for name in ("solver_tol", "feasibility_tol"):
+            positive(f"{path}.{name}", getattr(self, name))
+        for name in ("slack_l1", "slack_l2"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
+        if self.soft_constraints and self.slack_l1 == 0 and self.slack_l2 == 0:
+            raise ValueError(f"{path}.slack_l1: slack_l1 and slack_l2 are both 0, so a slack would be free")
+
+
+class LinearMPCState(NamedTuple):
+    """Diagnostics of the last solve of one copy: ``status`` (``algorithms.mpc.qp.STATUS_*``, int32) and the
+    interior-point ``iterations`` (int32)."""
+
+    status: Any
+    iterations: Any
+
+
+# --------------------------------------------------------------------------------------------- host set-up
+@dataclasses.dataclass(frozen=True)
+class Problem:
+    """Everything both controllers build from ``(env, prior_params, options)`` on the host (numpy float64).
+
+    Attributes:
+        options: the parsed ``Options``. model: the ``env.symbolic_model`` it came from. Q, R: weights.
+        affine: ``qp.AffineModel`` (its ``K`` is zero without pre-stabilisation). K_lqr: (n_points, nu, nx) LQR
+            gains at the points (the fallback law). rows: ``qp.ConstraintRows``.
+        row_of: for each env constraint, a tuple (one entry per row) of the index into ``rows`` (or -1 for a
+            skipped constraint). skipped: indices of the env constraints that are not imposed.
+        u_low, u_high: (nu,) clip box from the hard single-input rows (actuator limits included).
+    """
+
+    options: Options
+    model: Any
+    Q: np.ndarray
+    R: np.ndarray
+    affine: qp_lib.AffineModel
+    K_lqr: np.ndarray
+    rows: qp_lib.ConstraintRows
+    row_of: tuple
+    skipped: tuple
+    u_low: np.ndarray
+    u_high: np.ndarray
+
+
+def _weights(env, prior_params, opts: Options, path: str) -> tuple[np.ndarray, np.ndarray]:
+    Q = np.asarray(prior_params.Q, dtype=np.float64)
+    R = np.asarray(prior_params.R, dtype=np.float64)
+    if opts.q_diag is not None:
+        Q = np.diag(weight_diagonal(f"{path}.q_diag", opts.q_diag, (), env.nx))
+    if opts.r_diag is not None:
+        R = np.diag(weight_diagonal(f"{path}.r_diag", opts.r_diag, (), env.nu))
+    if np.linalg.eigvalsh(R).min() <= 0:
+        raise ValueError(f"{path}.r_diag: the input weight R must be positive definite")
+    return Q, R
+
+
+def _affine_model(env, prior_params, model, opts: Options, Q, R):
+    """Linearisations, offsets, LQR gains and terminal weights at the chosen points."""
+    mode = opts.linearize_about
+    if mode == "auto":
+        mode = "goal" if env.task == "stabilization" else "reference"
+    u_bar = np.asarray(env.system.equilibrium_input(prior_params.physics), dtype=np.float64).reshape(env.nu)
+    if mode == "goal":
+        x_bar = np.asarray(prior_params.goal, dtype=np.float64).reshape(1, env.nx)
+    else:
+        x_bar = np.asarray(model.x_ref, dtype=np.float64)
+    n = x_bar.shape[0]
+    U = np.repeat(u_bar[:, None], n, axis=1)
+    Ad_all, Bd_all = model.dfd.map(n)(x_bar.T, U)
+    Ad = np.asarray(Ad_all).reshape(env.nx, n, env.nx).transpose(1, 0, 2)
+    Bd = np.asarray(Bd_all).reshape(env.nx, n, env.nu).transpose(1, 0, 2)
+    f_bar = np.asarray(model.fd.map(n)(x_bar.T, U)).T
+    c = f_bar - np.einsum("ixy,iy->ix", Ad, x_bar) - Bd @ u_bar
+
+    # One Riccati solve when the linear part is the same everywhere (stabilization; level quadrotor references).
+    same = qp_lib.same_along_axis0(Ad) and qp_lib.same_along_axis0(Bd)
+    points = [0] if same else range(n)
+    solves = [discrete_lqr_gain(Ad[i], Bd[i], Q, R) for i in points]
+    K_lqr = np.stack([s[0] for s in solves])
+    P_dare = np.stack([s[1] for s in solves])
+    if same:
+        K_lqr = np.repeat(K_lqr, n, axis=0)
+        P_dare = np.repeat(P_dare, n, axis=0)
+    K = K_lqr if opts.prestabilize else np.zeros_like(K_lqr)
+    P = P_dare if opts.terminal_weight == "dare" else np.repeat(Q[None], n, axis=0)
+    affine = qp_lib.AffineModel(Ad=Ad, Bd=Bd, c=c, x_bar=x_bar, u_bar=u_bar, K=K, P=P)
+    return affine, K_lqr, mode
+
+
+def _constraint_rows(env, prior_params, use_env: bool):
+    """Actuator-limit rows, then the env's linear constraint rows as ``Ax x + Au u <= b`` (duplicates merged)."""
+    nx, nu = env.nx, env.nu
+    low, high = (np.asarray(b, dtype=np.float64).reshape(nu) for b in env.system.input_bounds(prior_params.physics))
+    Ax, Au, b = [], [], []
+    for i in range(nu):
+        for sign, bound in ((1.0, high[i]), (-1.0, -low[i])):
+            if np.isfinite(bound):
+                Ax.append(np.zeros(nx))
+                Au.append(sign * np.eye(nu)[i])
+                b.append(bound)
+    row_of, skipped = [], []
+    specs = env.constraint_specs if use_env else ()
+    for index, (spec, values) in enumerate(zip(specs, prior_params.constraints[: len(specs)], strict=True)):
+        if spec.form != "linear":
+            skipped.append(index)
+            row_of.append((-1,) * spec.num_rows)
+            continue
+        A = np.asarray(values.A, dtype=np.float64)
+        rhs = np.asarray(values.b, dtype=np.float64)
+        ax = np.zeros((A.shape[0], nx))
+        au = np.zeros((A.shape[0], nu))
+        for col, dim in enumerate(spec.active_dims):
+            if spec.on == "state":
+                ax[:, dim] = A[:, col]
+            elif spec.on == "input":
+                au[:, dim] = A[:, col]
+            elif dim < nx:
+                ax[:, dim] = A[:, col]
+            else:
+                au[:, dim - nx] = A[:, col]
+        start = len(b)
+        Ax.extend(ax)
+        Au.extend(au)
+        b.extend(rhs)
+        row_of.append(tuple(range(start, start + A.shape[0])))
+    if not use_env:
+        skipped = []
+        row_of = [(-1,) * spec.num_rows for spec in env.constraint_specs]
+    Ax, Au, b = np.asarray(Ax).reshape(-1, nx), np.asarray(Au).reshape(-1, nu), np.asarray(b, dtype=np.float64)
+
+    # Merge rows that are the same half-space (e.g. the "default" input constraint repeats the actuator limits).
+    full = np.concatenate([Ax, Au, b[:, None]], axis=1)
+    norms = np.linalg.norm(full[:, :-1], axis=1)
+    keep = norms > 0
+    if not np.all(keep):
+        bad = [i for i, rows in enumerate(row_of) for r in rows if r >= 0 and not keep[r]]
+        raise ValueError(f"constraints[{bad[0]}]: a row has all-zero coefficients; remove it")
+    key = np.round(full / norms[:, None], 12)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    order = np.sort(first)
+    new_index = {old: new for new, old in enumerate(order)}
+    remap = np.array([new_index[first[inverse[r]]] for r in range(len(b))], dtype=int)
+    row_of = tuple(tuple(int(remap[r]) if r >= 0 else -1 for r in rows) for rows in row_of)
+    Ax, Au, b = Ax[order], Au[order], b[order]
+    soft = np.any(Ax != 0.0, axis=1)
+    rows = qp_lib.ConstraintRows(Ax=Ax, Au=Au, b=b, soft=soft)
+
+    # The clip box: the tightest single-input hard rows (never looser than the actuator limits).
+    u_low, u_high = low.copy(), high.copy()
+    for ax, au, rhs in zip(Ax, Au, b, strict=True):
+        nonzero = np.flatnonzero(au)
+        if np.any(ax != 0.0) or nonzero.size != 1:
+            continue
+        i, a = nonzero[0], au[nonzero[0]]
+        if a > 0:
+            u_high[i] = min(u_high[i], rhs / a)
+        else:
+            u_low[i] = max(u_low[i], rhs / a)
+    return rows, row_of, tuple(skipped), u_low, u_high
+
+
+def build_problem(env, prior_params, options=None, path: str = PATH) -> Problem:
+    """Parse ``options`` (error messages name ``<path>.<field>``) and build the host data both controllers share
+    (see ``Problem``)."""
+    opts = parse_options(Options, options, path)
+    Q, R = _weights(env, prior_params, opts, path)
+    model = env.symbolic_model(prior_params, opts.discretization)
+    affine, K_lqr, _ = _affine_model(env, prior_params, model, opts, Q, R)
+    rows, row_of, skipped, u_low, u_high = _constraint_rows(env, prior_params, opts.env_constraints)
+    if np.any(u_low > u_high):
+        raise ValueError(
+            f"constraints: the input constraints leave no admissible input (low {u_low.tolist()}, high "
+            f"{u_high.tolist()})"
+        )
+    return Problem(opts, model, Q, R, affine, K_lqr, rows, row_of, skipped, u_low, u_high)
+
+
+def build_condensed_qp(problem: Problem) -> qp_lib.CondensedQP:
+    """The condensed QP of ``problem`` (``algorithms.mpc.qp.build_qp`` with its options)."""
+    opts = problem.options
+    return qp_lib.build_qp(
+        problem.affine,
+        opts.horizon,
+        problem.Q,
+        problem.R,
+        problem.rows,
+        soft_constraints=opts.soft_constraints,
+        slack_per_stage=opts.slack_per_stage,
+        slack_l1=opts.slack_l1,
+        slack_l2=opts.slack_l2,
+    )
+
+
+# --------------------------------------------------------------------------------------------- JAX controller
+def make_linear_mpc(env, prior_params, options=None) -> JaxController:
+    """Batched linear MPC in JAX (see the module docstring).
+
+    Args:
+        env: the environment. prior_params: ``EnvParams`` of the controller's model; its ``Q``, ``R`` are the
+            default weights and its ``constraints`` the constraint values. options: ``Options`` fields as a
+            mapping (``controllers.linear_mpc``).
+
+    Returns:
+        A ``JaxController`` named ``"linear_mpc"``. ``act`` returns the input (nu,), N, and
+        ``LinearMPCState``. ``info`` holds ``qp`` (the ``CondensedQP``), ``horizon``, ``linearize_about``,
+        ``K_lqr``, ``u_low``/``u_high`` (the clip box) and ``skipped_constraints``.
+
+    Raises:
+        ValueError: naming ``controllers.linear_mpc.<field>`` for a bad option.
+    """
+    problem = build_problem(env, prior_params, options)
+    opts = problem.options
+    qp = build_condensed_qp(problem)
+    dtype = jnp.zeros(()).dtype
+    arrays = qp_lib.qp_arrays(qp, dtype)
+    K_lqr = jnp.asarray(problem.K_lqr, dtype)
+    u_bar = jnp.asarray(problem.affine.u_bar, dtype)
+    u_low = jnp.asarray(problem.u_low, dtype)
+    u_high = jnp.asarray(problem.u_high, dtype)
+    last_point = problem.K_lqr.shape[0] - 1
+    settings = {"max_iter": opts.max_iter, "solver_tol": opts.solver_tol, "feasibility_tol": opts.feasibility_tol}
+
+    def reset(key, reference):
+        return LinearMPCState(jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32))
+
+    def act(ctrl_state, obs, step, reference):
+        x = jnp.asarray(state_from_obs(env, obs), dtype)
+        hess, q, G, h, theta, index = qp_lib.qp_vectors(qp, arrays, step, x, reference.x_ref)
+        solution = qp_lib.solve_qp(hess, q, G, h, **settings)
+        u_mpc = qp_lib.first_input(arrays, solution.z, theta, index)
+        k = jnp.clip(step, 0, reference.x_ref.shape[0] - 1)
+        u_lqr = u_bar - K_lqr[jnp.minimum(k, last_point)] @ (x - reference.x_ref[k])
+        failed = (solution.status == qp_lib.STATUS_FAILED) | ~jnp.all(jnp.isfinite(u_mpc))
+        u = jnp.clip(jnp.where(failed, u_lqr, u_mpc), u_low, u_high)
+        return u, LinearMPCState(solution.status, solution.iterations)
+
+    info = {
+        "qp": qp,
+        "horizon": opts.horizon,
+        "linearize_about": "goal" if problem.affine.num_points == 1 else "reference",
+        "K_lqr": problem.K_lqr,
+        "u_low": problem.u_low,
+        "u_high": problem.u_high,
+        "skipped_constraints": problem.skipped,
+        "options": opts,
+    }
+    return JaxController("linear_mpc", reset, act, info=info)
+
+
+# --------------------------------------------------------------------------------------------- CasADi controller
+@dataclasses.dataclass(frozen=True, eq=False)
+class LinearMPCCasadi:
+    """The linear MPC for one copy on the host (``is_jax = False``): ``casadi.Opti("conic")`` with qpOASES or OSQP.
+
+    The problem is the sparse form of the JAX controller's (states kept as variables, dynamics as equality
+    constraints, no pre-stabilisation, constraints through the symbolic model's ``g_i`` functions), built once
+    with parameters for the state, the reference window and the model offsets. ``reset`` returns
+    ``{"success": True}``; ``act(ctrl_state, obs, step, reference)`` returns ``(u (nu,) numpy, {"success": bool})``
+    (``ctrl_state`` is not used: every step is solved from scratch).
+    """
+
+    name: str
+    problem: Problem
+    opti: Any
+    variables: dict
+    parameters: dict
+    is_jax: ClassVar[bool] = False
+
+    def reset(self, key, reference):
+        return {"success": True}
+
+    def solve(self, x0, step: int, x_ref) -> tuple[np.ndarray, bool]:
+        """First input (nu,) and solver success for state ``x0`` (nx,) at step ``step`` along ``x_ref`` (T+1, nx)."""
+        problem, opti = self.problem, self.opti
+        H = problem.options.horizon
+        affine = problem.affine
+        stages = np.minimum(step + np.arange(H + 1), affine.num_points - 1)
+        targets = np.minimum(step + 1 + np.arange(H), x_ref.shape[0] - 1)
+        p = self.parameters
+        opti.set_value(p["x0"], x0)
+        opti.set_value(p["r"], np.asarray(x_ref, dtype=np.float64)[targets].T)
+        opti.set_value(p["c"], affine.c[stages[:H]].T)
+        if "A" in p:
+            for j in range(H):
+                opti.set_value(p["A"][j], affine.Ad[stages[j]])
+                opti.set_value(p["B"][j], affine.Bd[stages[j]])
+            opti.set_value(p["P"], affine.P[stages[H]])
+        try:
+            opti.solve()
+            success = bool(opti.stats()["success"])
+        except RuntimeError:
+            success = False
+        u0 = np.asarray(opti.debug.value(self.variables["U"][:, 0]), dtype=np.float64).reshape(-1)
+        return u0, success and bool(np.all(np.isfinite(u0)))
+
+    def act(self, ctrl_state, obs, step, reference):
+        problem = self.problem
+        x = np.asarray(obs, dtype=np.float64)[: problem.model.nx]
+        x_ref = np.asarray(reference.x_ref, dtype=np.float64)
+        k = int(step)
+        u, success = self.solve(x, k, x_ref)
+        if not success:
+            kk = min(max(k, 0), x_ref.shape[0] - 1)
+            K = problem.K_lqr[min(kk, problem.K_lqr.shape[0] - 1)]
+            u = problem.affine.u_bar - K @ (x - x_ref[kk])
+        return np.clip(u, problem.u_low, problem.u_high), {"success": success}
+
+
+def make_linear_mpc_casadi(env, prior_params, options=None) -> LinearMPCCasadi:
+    """The linear MPC for one copy on the host with CasADi (same ``Options``; see ``LinearMPCCasadi``)."""
+    import casadi as cs
+
+    problem = build_problem(env, prior_params, options, CASADI_PATH)
+    opts = problem.options
+    affine, model = problem.affine, problem.model
+    nx, nu, H = env.nx, env.nu, opts.horizon
+    varying = not affine.time_invariant
+
+    opti = cs.Opti("conic")
+    X = opti.variable(nx, H + 1)
+    U = opti.variable(nu, H)
+    x0 = opti.parameter(nx)
+    r = opti.parameter(nx, H)
+    c = opti.parameter(nx, H)
+    parameters = {"x0": x0, "r": r, "c": c}
+    if varying:
+        parameters["A"] = [opti.parameter(nx, nx) for _ in range(H)]
+        parameters["B"] = [opti.parameter(nx, nu) for _ in range(H)]
+        parameters["P"] = opti.parameter(nx, nx)
+    A_of = (lambda j: parameters["A"][j]) if varying else (lambda j: cs.DM(affine.Ad[0]))
+    B_of = (lambda j: parameters["B"][j]) if varying else (lambda j: cs.DM(affine.Bd[0]))
+    P = parameters["P"] if varying else cs.DM(affine.P[0])
+
+    opti.subject_to(X[:, 0] == x0)
+    Q, R = cs.DM(problem.Q), cs.DM(problem.R)
+    u_bar = cs.DM(affine.u_bar)
+    cost = 0
+    for j in range(H):
+        opti.subject_to(X[:, j + 1] == A_of(j) @ X[:, j] + B_of(j) @ U[:, j] + c[:, j])
+        dx = X[:, j + 1] - r[:, j]
+        du = U[:, j] - u_bar
+        weight = P if j == H - 1 else Q
+        cost += 0.5 * cs.bilin(weight, dx, dx) + 0.5 * cs.bilin(R, du, du)
+
+    # Slacks: per distinct row that involves the state (the same merge as the JAX controller), per stage or shared.
+    rows = problem.rows
+    soft_index = {}
+    if opts.soft_constraints:
+        for r_index in np.flatnonzero(rows.soft):
+            soft_index[int(r_index)] = len(soft_index)
+    E = opti.variable(len(soft_index), H if opts.slack_per_stage else 1) if soft_index else None
+    if E is not None:
+        opti.subject_to(cs.vec(E) >= 0)
+        cost += opts.slack_l1 * cs.sum1(cs.vec(E)) + 0.5 * opts.slack_l2 * cs.sumsqr(E)
+
+    low, high = (np.asarray(b, dtype=np.float64).reshape(nu) for b in env.system.input_bounds(prior_params.physics))
+    # Each distinct row once: the actuator limits are rows 0..n-1 of ``problem.rows``, and an env row that repeats
+    # one of them (the "default" input constraint) or an earlier env row is skipped, since duplicated rows make the
+    # active set degenerate for qpOASES.
+    imposed = set(range(int(np.isfinite(low).sum() + np.isfinite(high).sum())))
+    env_rows = []  # (constraint index, row within it, merged row index)
+    for index, row_ids in enumerate(problem.row_of):
+        for row, rid in enumerate(row_ids):
+            if rid >= 0 and rid not in imposed:
+                imposed.add(rid)
+                env_rows.append((index, row, rid))
+    for j in range(H):
+        for i in range(nu):
+            if np.isfinite(high[i]):
+                opti.subject_to(U[i, j] <= high[i])
+            if np.isfinite(low[i]):
+                opti.subject_to(U[i, j] >= low[i])
+        values = {index: model.constraints[index](X[:, j + 1], U[:, j]) for index in {e[0] for e in env_rows}}
+        for index, row, rid in env_rows:
+            if rid in soft_index:
+                norm = float(np.linalg.norm(np.asarray(prior_params.constraints[index].A, dtype=np.float64)[row]))
+                opti.subject_to(values[index][row] <= norm * E[soft_index[rid], j if opts.slack_per_stage else 0])
+            else:
+                opti.subject_to(values[index][row] <= 0)
+    opti.minimize(cost)
+    if opts.casadi_solver == "qpoases":
+        solver_options = {"printLevel": "none", "error_on_fail": False}
+    else:
+        solver_options = {
+            "osqp": {"eps_abs": 1e-9, "eps_rel": 1e-9, "max_iter": 100000, "polish": True, "verbose": False},
+            "error_on_fail": False,
+        }
+    opti.solver(opts.casadi_solver, solver_options)
+    return LinearMPCCasadi(
+        name="linear_mpc_casadi",
+        problem=problem,
+        opti=opti,
+        variables={"X": X, "U": U, "E": E},
+        parameters=parameters,
+    )

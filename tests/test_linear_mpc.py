@@ -1,0 +1,321 @@
+"""Linear MPC: the condensed QP against a direct simulation, the batched qpax solve against qpOASES, the JAX
+controller against the CasADi one, LQR without active constraints, and constraint satisfaction in closed loop."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import scg_jax
+from algorithms.base import Reference
+from algorithms.evaluation import evaluate
+from algorithms.lqr import make_lqr
+from algorithms.mpc import qp as qp_lib
+from algorithms.mpc.linear import make_linear_mpc, make_linear_mpc_casadi
+
+# Position box inside the default state bounds, so some stages of a perturbed tracking QP press against it.
+QUAD_CONSTRAINTS = [
+    {"type": "default", "on": "state"},
+    {"type": "default", "on": "input"},
+    {"type": "bounded", "on": "state", "active_dims": [0, 2], "low": [-0.52, 0.48], "high": [0.52, 1.52]},
+]
+# Cart within 0.3 m, force within 2 N (LQR asks for more from the states below), plus the default input rows,
+# which repeat the 10 N actuator limits (the controllers merge them).
+CARTPOLE_CONSTRAINTS = [
+    {"type": "bounded", "on": "state", "active_dims": [0], "low": [-0.3], "high": [0.3]},
+    {"type": "abs_bound", "on": "input", "bound": 2.0},
+    {"type": "default", "on": "input"},
+]
+CARTPOLE_SPREAD = np.array([0.25, 0.5, 0.3, 0.5])  # half-widths of the random states (m, m/s, rad, rad/s)
+
+
+@pytest.fixture(scope="module")
+def quadrotor():
+    env = scg_jax.make("quadrotor_2d", task="tracking", constraints=QUAD_CONSTRAINTS)
+    params = env.default_params
+    return env, params, Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
+
+
+@pytest.fixture(scope="module")
+def cartpole():
+    env = scg_jax.make("cartpole", constraints=CARTPOLE_CONSTRAINTS)
+    params = env.default_params
+    return env, params, Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
+
+
+def _random_states(reference, spread, count, seed):
+    """``count`` (step, state) pairs: a random step of the reference and a state around its point."""
+    rng = np.random.default_rng(seed)
+    steps = rng.integers(0, reference.x_ref.shape[0] - 1, count)
+    states = reference.x_ref[steps] + rng.uniform(-1.0, 1.0, (count, reference.x_ref.shape[1])) * spread
+    return steps, states
+
+
+# --------------------------------------------------------------------------------------------- the condensed QP
+def _random_model(rng, nx, nu, num_points):
+    spd = lambda n: (lambda a: a @ a.T + n * np.eye(n))(rng.normal(size=(n, n)))  # noqa: E731
+    return qp_lib.AffineModel(
+        Ad=np.eye(nx) + 0.3 * rng.normal(size=(num_points, nx, nx)),
+        Bd=rng.normal(size=(num_points, nx, nu)),
+        c=rng.normal(size=(num_points, nx)),
+        x_bar=rng.normal(size=(num_points, nx)),
+        u_bar=rng.normal(size=nu),
+        K=0.3 * rng.normal(size=(num_points, nu, nx)),
+        P=np.stack([spd(nx) for _ in range(num_points)]),
+    )
+
+
+def _simulated(model, Q, R, rows, x0, x_ref, step, v, e, horizon, slack_l1, slack_l2):
+    """J/2, the row values ``(Ax x + Au u - b) / |row|`` per stage and u_0 of the plan ``v``, by forward
+    simulation of the affine model with the stage points clamped at its last point."""
+    last, T = model.num_points - 1, x_ref.shape[0] - 1
+    norms = np.linalg.norm(np.concatenate([rows.Ax, rows.Au], axis=1), axis=1)
+    x, cost, values, u0 = x0, 0.0, [], None
+    for j in range(horizon):
+        i = min(step + j, last)
+        u = model.u_bar - model.K[i] @ (x - model.x_bar[i]) + v[j]
+        x = model.Ad[i] @ x + model.Bd[i] @ u + model.c[i]
+        weight = model.P[min(step + horizon, last)] if j == horizon - 1 else Q
+        dx, du = x - x_ref[min(step + 1 + j, T)], u - model.u_bar
+        cost += 0.5 * dx @ weight @ dx + 0.5 * du @ R @ du
+        values.append((rows.Ax @ x + rows.Au @ u - rows.b) / norms)
+        u0 = u if j == 0 else u0
+    cost += slack_l1 * e.sum() + 0.5 * slack_l2 * e @ e
+    return cost, np.stack(values), u0
+
+
+@pytest.mark.parametrize("softening", ["hard", "shared", "per_stage"])
+def test_condensed_qp_matches_a_forward_simulation_of_a_time_varying_model(softening):
+    # A random model with a different linearisation at each of 7 points and pre-stabilising gains, so every
+    # part of the condensing is exercised (the envs' own linearisations are all time-invariant).
+    rng = np.random.default_rng(0)
+    nx, nu, H, slack_l1, slack_l2 = 3, 2, 4, 7.0, 3.0
+    model = _random_model(rng, nx, nu, 7)
+    Q, R = np.diag([1.0, 2.0, 0.5]), np.diag([0.3, 0.7])
+    rows = qp_lib.ConstraintRows(
+        Ax=np.array([[1.0, 0.0, -2.0], [0.0, 0.0, 0.0], [0.5, 1.0, 0.0]]),
+        Au=np.array([[0.0, 1.0], [3.0, -1.0], [0.0, 0.0]]),
+        b=np.array([1.0, 2.0, -0.5]),
+        soft=np.array([True, False, True]),
+    )
+    soft = softening != "hard"
+    per_stage = softening == "per_stage"
+    qp = qp_lib.build_qp(
+        model, H, Q, R, rows, soft_constraints=soft, slack_per_stage=per_stage, slack_l1=slack_l1, slack_l2=slack_l2
+    )
+    assert qp.hess.shape[0] == model.num_points  # one QP per step: the model is time-varying
+    num_slacks = (2 * H if per_stage else 2) if soft else 0
+    assert qp.num_slacks == num_slacks and qp.num_decisions == H * nu + num_slacks
+    x_ref = rng.normal(size=(9, nx))
+    with jax.enable_x64(True):
+        arrays = qp_lib.qp_arrays(qp, jnp.float64)
+        for step in (0, 2, 5):  # 5 + H runs past the last linearisation point: the stages clamp
+            x0 = rng.normal(size=nx)
+            hess, q, G, h, theta, index = (np.asarray(a) for a in qp_lib.qp_vectors(qp, arrays, step, x0, x_ref))
+            objective = []
+            for _ in range(2):
+                z = rng.normal(size=qp.num_decisions)
+                v, e = z[: H * nu].reshape(H, nu), z[H * nu :]
+                cost, values, u0 = _simulated(model, Q, R, rows, x0, x_ref, step, v, e, H, slack_l1, slack_l2)
+                objective.append((qp.objective_scale * (0.5 * z @ hess @ z + q @ z), cost))
+                # Row (stage j, row r) of G z - h is the scaled row value minus its slack.
+                slack = np.zeros((H, 3))
+                if soft:
+                    slack[:, [0, 2]] = e.reshape(H, 2) if per_stage else e
+                np.testing.assert_allclose((G @ z - h)[: 3 * H], (values - slack).ravel(), atol=1e-9)
+                np.testing.assert_allclose((G @ z - h)[3 * H :], -e, atol=1e-12)
+                np.testing.assert_allclose(qp_lib.first_input(arrays, z, theta, index), u0, atol=1e-9)
+            # The QP objective is J/2 up to a constant that does not depend on z.
+            (f1, j1), (f2, j2) = objective
+            np.testing.assert_allclose(f1 - f2, j1 - j2, rtol=1e-9, atol=1e-9)
+
+
+# --------------------------------------------------------------------------------------------- the QP solve
+def test_batched_qpax_solve_matches_qpoases_on_the_quadrotor_tracking_qp(quadrotor):
+    env, params, reference = quadrotor
+    steps, states = _random_states(reference, np.array([0.1, 0.3, 0.1, 0.3, 0.3, 0.5]), 12, seed=0)
+    with jax.enable_x64(True):
+        qp = make_linear_mpc(env, params, {"horizon": 10}).info["qp"]
+        arrays = qp_lib.qp_arrays(qp, jnp.float64)
+        vectors = jax.vmap(qp_lib.qp_vectors, in_axes=(None, None, 0, 0, None))
+        hess, q, G, h, theta, index = vectors(qp, arrays, jnp.asarray(steps), jnp.asarray(states), reference.x_ref)
+        solution = jax.jit(qp_lib.solve_qp_batch)(hess[0], q, G[0], h)
+        u_qpax = jax.vmap(qp_lib.first_input, in_axes=(None, 0, 0, None))(arrays, solution.z, theta, 0)
+    compared = active = 0
+    for i in range(len(steps)):
+        z_ref, success = qp_lib.solve_qp_casadi(hess[i], q[i], G[i], h[i], "qpoases")
+        if not success:  # the hard position box cannot be met from this state: qpax must not claim a solution
+            assert solution.status[i] == qp_lib.STATUS_FAILED
+            continue
+        compared += 1
+        active += int(np.any(np.asarray(G[i]) @ z_ref - np.asarray(h[i]) > -1e-7))
+        assert solution.status[i] != qp_lib.STATUS_FAILED
+        np.testing.assert_allclose(solution.z[i], z_ref, atol=1e-4)
+        u_ref = qp.u0_map[0] @ np.concatenate([z_ref, np.asarray(theta[i])])
+        np.testing.assert_allclose(u_qpax[i], u_ref, atol=1e-4)
+    # The comparison covers feasible QPs, most of them with rows at their bounds.
+    assert compared >= 8 and active >= 5
+
+
+def test_float32_qpax_solve_matches_qpoases_on_the_cartpole_qp(cartpole):
+    # Float32 (the default): the interior point's float32 limit is far below the 1e-4 N checked here on the
+    # cart-pole (measured within 1e-6 N), though on larger, stiffer QPs (the 2D quadrotor's) it is up to about 1e-2 N.
+    env, params, reference = cartpole
+    steps, states = _random_states(reference, CARTPOLE_SPREAD, 10, seed=0)
+    controller = make_linear_mpc(env, params, {"horizon": 20})
+    qp = controller.info["qp"]
+    arrays = qp_lib.qp_arrays(qp)
+    vectors = jax.vmap(qp_lib.qp_vectors, in_axes=(None, None, 0, 0, None))
+    hess, q, G, h, theta, _ = vectors(qp, arrays, jnp.asarray(steps), jnp.asarray(states, jnp.float32), reference.x_ref)
+    solution = jax.jit(qp_lib.solve_qp_batch)(hess[0], q, G[0], h)
+    with jax.enable_x64(True):
+        # The reference solves the same QP, formed in float64.
+        arrays64 = qp_lib.qp_arrays(qp, jnp.float64)
+        data64 = jax.vmap(qp_lib.qp_vectors, in_axes=(None, None, 0, 0, None))(
+            qp, arrays64, jnp.asarray(steps), jnp.asarray(states), reference.x_ref
+        )
+    active = 0
+    for i in range(len(steps)):
+        z_ref, success = qp_lib.solve_qp_casadi(data64[0][i], data64[1][i], data64[2][i], data64[3][i], "qpoases")
+        assert success and solution.status[i] != qp_lib.STATUS_FAILED
+        active += int(np.any(np.asarray(data64[2][i]) @ z_ref - np.asarray(data64[3][i]) > -1e-7))
+        u_ref = np.asarray(arrays64.u0_map[0]) @ np.concatenate([z_ref, np.asarray(data64[4][i])])
+        np.testing.assert_allclose(qp_lib.first_input(arrays, solution.z[i], theta[i], 0), u_ref, atol=1e-4)
+    assert active >= 5
+
+
+# --------------------------------------------------------------------------------------------- the controllers
+def test_jax_and_casadi_linear_mpc_give_the_same_first_input_on_the_cartpole(cartpole):
+    # Float32 JAX controller against qpOASES in float64 on the sparse problem built from the symbolic model's own
+    # constraint functions: agreement to 1e-4 N (the float32 interior point reaches about 1e-6 N here).
+    env, params, reference = cartpole
+    steps, states = _random_states(reference, CARTPOLE_SPREAD, 8, seed=1)
+    options = {"horizon": 20}
+    jax_mpc = make_linear_mpc(env, params, options)
+    casadi_mpc = make_linear_mpc_casadi(env, params, options)
+    act = jax.jit(jax_mpc.act)
+    saturated = 0
+    for step, x in zip(steps, states, strict=True):
+        u_jax, status = act(jax_mpc.reset(None, reference), jnp.asarray(x, jnp.float32), step, reference)
+        u_casadi, info = casadi_mpc.act(casadi_mpc.reset(None, reference), x, step, reference)
+        assert info["success"] and int(status.status) != qp_lib.STATUS_FAILED
+        np.testing.assert_allclose(u_jax, u_casadi, atol=1e-4)
+        saturated += int(abs(u_casadi[0]) > 2.0 - 1e-6)
+    assert 0 < saturated < len(steps)  # some first inputs sit at the 2 N bound, some do not
+
+
+@pytest.mark.parametrize("per_stage", [False, True])
+def test_jax_and_casadi_soft_constrained_mpc_agree_on_the_quadrotor(quadrotor, per_stage):
+    # Float64: the 2D quadrotor's QP is beyond float32's reach at 1e-4 N (see the float32 test above).
+    env, params, reference = quadrotor
+    steps, states = _random_states(reference, 0.2, 5, seed=0)
+    options = {"horizon": 10, "soft_constraints": True, "slack_per_stage": per_stage}
+    casadi_mpc = make_linear_mpc_casadi(env, params, options)
+    violated = 0
+    with jax.enable_x64(True):
+        jax_mpc = make_linear_mpc(env, params, options)
+        qp = jax_mpc.info["qp"]
+        arrays = qp_lib.qp_arrays(qp, jnp.float64)
+        act = jax.jit(jax_mpc.act)
+        reference64 = Reference(*(jnp.asarray(a, jnp.float64) for a in reference))
+        plan = jax.jit(lambda step, x: qp_lib.solve_qp(*qp_lib.qp_vectors(qp, arrays, step, x, reference64.x_ref)[:4]))
+        for step, x in zip(steps, states, strict=True):
+            u_jax, status = act(jax_mpc.reset(None, reference64), jnp.asarray(x), step, reference64)
+            u_casadi, info = casadi_mpc.act({}, x, step, reference)
+            assert info["success"] and int(status.status) != qp_lib.STATUS_FAILED
+            np.testing.assert_allclose(u_jax, u_casadi, atol=1e-4)
+            z = plan(step, jnp.asarray(x)).z
+            violated += int(np.max(z[qp.num_decisions - qp.num_slacks :]) > 1e-6)
+    assert violated >= 3  # most plans leave the position box: the slacks are priced the same way in both
+
+
+def test_without_active_constraints_the_first_input_is_the_lqr_input(cartpole):
+    # P is the Riccati solution, so the finite-horizon optimum starts with the infinite-horizon (LQR) input, for
+    # either condensing (pre-stabilised or plain).
+    env, params, reference = cartpole
+    states = np.random.default_rng(4).uniform(-0.01, 0.01, (4, 4))
+    K = make_lqr(env, params).info["K"][0]
+    with jax.enable_x64(True):
+        reference64 = Reference(*(jnp.asarray(a, jnp.float64) for a in reference))
+        for prestabilize in (True, False):
+            mpc = make_linear_mpc(env, params, {"horizon": 15, "prestabilize": prestabilize})
+            act = jax.jit(mpc.act)
+            for x in states:
+                u, status = act(mpc.reset(None, reference64), jnp.asarray(x), 0, reference64)
+                assert int(status.status) != qp_lib.STATUS_FAILED
+                np.testing.assert_allclose(u, -K @ x, rtol=1e-6, atol=1e-9)
+
+
+def test_an_infeasible_qp_falls_back_to_the_clipped_lqr_input(cartpole):
+    # The cart 1 m beyond its 0.3 m bound: no plan meets the hard row at the next state, so the input is LQR's,
+    # clipped to the 2 N box.
+    env, params, reference = cartpole
+    mpc = make_linear_mpc(env, params, {"horizon": 10})
+    x = np.array([1.3, 0.0, 0.0, 0.0])
+    u, status = jax.jit(mpc.act)(mpc.reset(None, reference), jnp.asarray(x, jnp.float32), 0, reference)
+    assert int(status.status) == qp_lib.STATUS_FAILED
+    K = make_lqr(env, params).info["K"][0]
+    np.testing.assert_allclose(u, np.clip(-K @ x, -2.0, 2.0), rtol=1e-6)
+    assert np.all(mpc.info["u_high"] == 2.0) and np.all(mpc.info["u_low"] == -2.0)
+
+
+def test_mpc_holds_an_input_bound_that_lqr_violates():
+    env = scg_jax.make(
+        "cartpole",
+        episode_len_sec=3.0,
+        init_state={"type": "uniform", "low": [-0.1] * 4, "high": [0.1] * 4},
+        constraints=[{"type": "abs_bound", "on": "input", "bound": 1.5}],
+    )
+    params = env.default_params
+    key = jax.random.key(0)
+    lqr = evaluate(env, params, make_lqr(env, params), key, 8, measure_time=False)
+    mpc_controller = make_linear_mpc(env, params, {"horizon": 20})
+    mpc = evaluate(env, params, mpc_controller, key, 8, measure_time=False)
+    # LQR asks for up to 5 N from these starts (the same episodes: same key).
+    assert np.abs(lqr.trajectory["u_cmd"]).max() > 3.0
+    assert lqr.summary["constraint_violation_steps"] > 0
+    assert mpc.summary["constraint_violation_steps"] == 0 and mpc.summary["crash_rate"] == 0.0
+    assert mpc.summary["length"] == env.num_steps
+    # The bound is held by the QP itself, not only by the final clip: no solve failed over the episodes.
+    reference = Reference(*env.reference(params))
+
+    def replay(obs_seq):
+        def body(state, inputs):
+            obs, step = inputs
+            _, state = mpc_controller.act(state, obs, step, reference)
+            return state, state.status
+
+        steps = jnp.arange(obs_seq.shape[0])
+        return jax.lax.scan(body, mpc_controller.reset(None, reference), (obs_seq, steps))[1]
+
+    statuses = jax.jit(jax.vmap(replay, in_axes=1))(jnp.asarray(mpc.trajectory["obs"]))
+    assert not np.any(np.asarray(statuses) == qp_lib.STATUS_FAILED)
+
+
+# --------------------------------------------------------------------------------------------- options
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"horizn": 10}, r"controllers\.linear_mpc\.horizn: unknown key.*did you mean 'horizon'"),
+        ({"horizon": 0}, r"controllers\.linear_mpc\.horizon: must be a positive integer"),
+        ({"horizon": 2.5}, r"controllers\.linear_mpc\.horizon: expected an integer"),
+        ({"linearize_about": "start"}, r"controllers\.linear_mpc\.linearize_about: unknown value 'start'"),
+        ({"casadi_solver": "gurobi"}, r"controllers\.linear_mpc\.casadi_solver: unknown value.*qpoases, osqp"),
+        ({"r_diag": [0.1, 0.1]}, r"controllers\.linear_mpc\.r_diag: expected 1 values, got 2"),
+        ({"r_diag": [0.0]}, r"controllers\.linear_mpc\.r_diag: .*positive definite"),
+        ({"solver_tol": 0.0}, r"controllers\.linear_mpc\.solver_tol: must be positive"),
+        ({"soft_constraints": True, "slack_l1": 0, "slack_l2": 0}, r"controllers\.linear_mpc\.slack_l1: "),
+    ],
+)
+def test_bad_options_name_the_field(cartpole, options, message):
+    env, params, _ = cartpole
+    with pytest.raises(ValueError, match=message):
+        make_linear_mpc(env, params, options)
+
+
+def test_the_casadi_variant_names_its_own_config_section(cartpole):
+    env, params, _ = cartpole
+    with pytest.raises(ValueError, match=r"controllers\.linear_mpc_casadi\.horizon: must be a positive integer"):
+        make_linear_mpc_casadi(env, params, {"horizon": 0})
+    with pytest.raises(ValueError, match=r"controllers\.linear_mpc_casadi\.r_diag: expected 1 values, got 3"):
+        make_linear_mpc_casadi(env, params, {"r_diag": [1.0, 1.0, 1.0]})
