@@ -99,8 +99,11 @@ def throughput(env, params, cfg, algo: str, batch: int, iterations: int, repeats
     config = _config(cfg, algo, **changes)
     learner = algorithm_module(algo, "make_learner")(config, env)
     state = learner.init(jax.random.key(0), params)
-    state, metrics = jax.jit(learner.update)(state, params)  # past any warm-up phase of the first iteration
-    steps_per_iteration = int(jax.jit(learner.update)(state, params)[1]["env_steps"]) - int(metrics["env_steps"])
+    update = jax.jit(learner.update)
+    # Past SAC's random-action warm-up (iterations without gradient steps), so the timed iterations learn.
+    for _ in range(max(1, getattr(config, "warmup_iterations", 0))):
+        state, metrics = update(state, params)
+    steps_per_iteration = int(update(state, params)[1]["env_steps"]) - int(metrics["env_steps"])
     run = _update_runner(learner, iterations)
     start = time.perf_counter()
     compiled = run.lower(state, params).compile()

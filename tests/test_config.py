@@ -3,6 +3,7 @@
 import dataclasses
 import inspect
 import io
+import math
 from pathlib import Path
 
 import jax
@@ -95,9 +96,9 @@ def test_config_file_makes_the_env_it_describes_and_steps(path):
     assert out.info["constraint_values"].shape == (sum(s.num_rows for s in env.constraint_specs),)
     np.testing.assert_allclose(np.asarray(out.info["u"]), np.asarray(u_eq), rtol=1e-6)  # hover is within limits
     assert float(out.cost) in (0.0, 1.0)
-    assert float(out.reward) == pytest.approx(
-        -float(out.info["quadratic_cost"]) - float(params.violation_penalty) * float(out.cost), rel=1e-6
-    )
+    c = float(out.info["quadratic_cost"])
+    shaped = {"quadratic": -c, "exponential": math.exp(-c)}[env.reward_type]
+    assert float(out.reward) == pytest.approx(shaped - float(params.violation_penalty) * float(out.cost), rel=1e-6)
 
 
 @pytest.mark.parametrize("path", CONFIG_FILES, ids=CONFIG_IDS)

@@ -15,7 +15,7 @@ from algorithms.ppo import Config, losses, make_learner, make_train
 from algorithms.rl.envs import policy_action_to_input
 from algorithms.rl.normalization import init_stats
 from algorithms.rl.policy import load_policy
-from algorithms.rl.training import run_training
+from tests.rl_helpers import run_training_capturing_policy
 
 # 4 iterations of 8 copies x 16 steps; one epoch of one minibatch, so the first (only) gradient step of an iteration
 # evaluates the loss at the rollout's own parameters (ratio 1: see test_rollout_log_probs_are_recomputed_exactly).
@@ -309,17 +309,9 @@ def trained_dir(cartpole, tmp_path_factory, seeds_run):
     env, params = cartpole
     keys, _, _ = seeds_run
     learner = make_learner(TINY, env)
-    captured = []
-
-    def policy_params(runner_state):
-        captured.append(learner.policy_params(runner_state))
-        return captured[-1]
-
     out_dir = tmp_path_factory.mktemp("ppo_run")
-    result = run_training(
-        learner._replace(policy_params=policy_params), env, params, keys[0], out_dir, progress=False, csv=False
-    )
-    return out_dir, learner, captured[-1], result
+    policy_params, result = run_training_capturing_policy(learner, env, params, keys[0], out_dir)
+    return out_dir, learner, policy_params, result
 
 
 def test_run_training_equals_make_train(seeds_run, trained_dir):

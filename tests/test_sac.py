@@ -13,8 +13,8 @@ import scg_jax
 from algorithms.rl.envs import policy_action_to_input
 from algorithms.rl.normalization import init_stats
 from algorithms.rl.policy import load_policy
-from algorithms.rl.training import run_training
 from algorithms.sac import Config, losses, make_learner, make_policy_from_config, make_train, parse_config, replay
+from tests.rl_helpers import run_training_capturing_policy
 
 # 100 iterations of 8 transitions, 2 gradient steps each after 25 warm-up iterations (200 transitions); the buffer
 # holds 400 transitions, so it wraps around twice.
@@ -288,17 +288,9 @@ def trained_dir(cartpole, tmp_path_factory, seeds_run):
     env, params = cartpole
     keys, _, _ = seeds_run
     learner = make_learner(TINY, env)
-    captured = []
-
-    def policy_params(runner_state):
-        captured.append(learner.policy_params(runner_state))
-        return captured[-1]
-
     out_dir = tmp_path_factory.mktemp("sac_run")
-    result = run_training(
-        learner._replace(policy_params=policy_params), env, params, keys[0], out_dir, progress=False, csv=False
-    )
-    return out_dir, learner, captured[-1], result
+    policy_params, result = run_training_capturing_policy(learner, env, params, keys[0], out_dir)
+    return out_dir, learner, policy_params, result
 
 
 def test_run_training_equals_make_train(seeds_run, trained_dir):

@@ -41,7 +41,7 @@ from algorithms.rl.envs import (
 )
 from algorithms.rl.networks import MLP
 from algorithms.rl.normalization import RunningStats, init_stats, normalize, update_stats
-from algorithms.rl.training import Learner
+from algorithms.rl.training import Learner, raw_key
 
 NAME = "ppo"
 
@@ -84,12 +84,6 @@ class RunnerState(NamedTuple):
     last_episode: dict
     key: Any
     env_steps: Any
-
-
-def _raw_key(key):
-    if jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):
-        return jax.random.key_data(key)
-    return key
 
 
 def _parse(config) -> Config:
@@ -140,7 +134,7 @@ def _functions(config: Config, env):
         return critic.apply(critic_params, obs)[..., 0]
 
     def init(key, params) -> RunnerState:
-        key = _raw_key(key)
+        key = raw_key(key)
         key, key_actor, key_critic, key_env = jax.random.split(key, 4)
         dummy = jnp.zeros((1, train_env.obs_size))
         net_params = {
@@ -289,7 +283,7 @@ def _functions(config: Config, env):
             mean = actor.apply(policy_params["actor"], observe(policy_params["obs_stats"], obs))
             if key is None:
                 return jnp.clip(mean, -1.0, 1.0)
-            noise = jax.random.normal(_raw_key(key), mean.shape, mean.dtype)
+            noise = jax.random.normal(raw_key(key), mean.shape, mean.dtype)
             return jnp.clip(mean + jnp.exp(policy_params["log_std"]) * noise, -1.0, 1.0)
 
         return policy

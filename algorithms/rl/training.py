@@ -113,7 +113,7 @@ def _make_chunk_runner(learner: Learner, max_chunk: int):
     return jax.jit(run)
 
 
-def _raw_key(key):
+def raw_key(key):
     """Raw ``uint32`` key data (typed keys are converted) so the runner state serialises anywhere."""
     if jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):
         return jax.random.key_data(key)
@@ -221,7 +221,7 @@ def run_training(
     if checkpoint_every is not None and (int(checkpoint_every) != checkpoint_every or checkpoint_every < 1):
         raise ValueError(f"checkpoint_every: must be a positive integer or None, got {checkpoint_every!r}")
     config = config_dict(learner.config)
-    key = _raw_key(jnp.asarray(key))
+    key = raw_key(jnp.asarray(key))
 
     init = jax.jit(learner.init)
     iteration, elapsed_before, resumed_from, steps_at_start = 0, 0.0, None, 0.0

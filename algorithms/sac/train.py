@@ -28,6 +28,7 @@ import optax
 from algorithms.rl import envs as rl_envs
 from algorithms.rl.networks import MLP
 from algorithms.rl.normalization import RunningStats, init_stats, normalize, update_stats
+from algorithms.rl.training import Learner, raw_key
 from algorithms.sac import losses, replay
 from algorithms.sac.config import Config, parse_config
 from scg_jax._pytree import pytree_dataclass
@@ -215,7 +216,7 @@ def _build(config: Config, env) -> _Parts:
             obs=obs.astype(jnp.float32),
             episode_stats=rl_envs.init_episode_stats(num_envs),
             last_episode=rl_envs.initial_episode_means(),
-            key=key,
+            key=raw_key(key),  # raw data, as PPO: the state serialises the same whatever key was passed
             iteration=jnp.zeros((), jnp.int32),
             env_steps=jnp.zeros((), jnp.int32),
             grad_steps=jnp.zeros((), jnp.int32),
@@ -402,7 +403,6 @@ def make_learner(config: Config | Mapping | None, env):
     ``update`` is one iteration; warm-up or learning is chosen from ``runner_state.iteration``, so a chain of
     ``num_iterations`` updates is the same computation as ``make_train``.
     """
-    from algorithms.rl.training import Learner
 
     config = parse_config(config)
     parts = _build(config, env)
