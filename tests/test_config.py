@@ -1,6 +1,7 @@
 """Configuration files: typed loading, overrides, dotted-path errors, YAML round trips and ``make_from_config``."""
 
 import dataclasses
+import importlib
 import inspect
 import io
 import math
@@ -13,6 +14,9 @@ import pytest
 import yaml
 
 import scg_jax
+from algorithms import CONTROLLERS
+from algorithms.base import parse_options
+from algorithms.rl.policy import algorithm_module
 from scg_jax import constraints as constraints_lib
 from scg_jax import disturbances as disturbances_lib
 from scg_jax import randomization
@@ -580,3 +584,15 @@ def test_specs_and_params_match_a_full_config():
 
     assert env.adversary_channel == "dynamics"
     np.testing.assert_allclose(np.asarray(params.adversary_scale), [0.1, 0.2], rtol=1e-6)
+
+
+@pytest.mark.parametrize("path", CONFIG_FILES, ids=lambda p: p.stem)
+def test_every_controllers_and_training_section_parses(path):
+    """The option sections are checked when a controller or learner is built; check those of every shipped file."""
+    cfg = load_config(path)
+    for name, options in cfg.controllers.items():
+        module = importlib.import_module(CONTROLLERS[name].partition(":")[0])
+        parse_options(module.Options, options, f"controllers.{name}")
+    for algo, options in cfg.training.items():
+        config = parse_options(algorithm_module(algo, "Config"), options, f"training.{algo}")
+        assert config.num_iterations >= 1
