@@ -23,6 +23,7 @@ Compute time per step (``compute_time_per_step_s``) is the controller's time per
 from __future__ import annotations
 
 import time
+import weakref
 from collections.abc import Mapping
 from typing import Any, NamedTuple
 
@@ -147,22 +148,23 @@ def _replay_fn(env, controller):
 
 
 # Compiled closed loops and replays, so evaluating the same env and controller again (new key, new params of the
-# same shapes) does not compile again. Envs and controllers compare by identity.
-_COMPILED: dict = {}
+# same shapes) does not compile again. Keyed weakly by the controller, so a controller's executables go with it;
+# envs compare by identity (the entry keeps its env alive, so the id cannot be reused while cached).
+_COMPILED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _compiled(kind: str, env, controller, axis, args) -> tuple[Any, float]:
     """``(executable, compile seconds)``; 0 s when it was compiled before for the same shapes."""
     signature = jax.tree.map(lambda a: (jnp.shape(a), jnp.result_type(a)), args)
-    cache_key = (kind, id(env), id(controller), axis, str(jax.tree.structure(args)), str(signature))
-    entry = _COMPILED.get(cache_key)
-    if entry is not None and entry[0] is env and entry[1] is controller:
-        return entry[2], 0.0
+    cache_key = (kind, id(env), axis, str(jax.tree.structure(args)), str(signature))
+    entries = _COMPILED.setdefault(controller, {})
+    entry = entries.get(cache_key)
+    if entry is not None and entry[0] is env:
+        return entry[1], 0.0
     build = _closed_loop_fn if kind == "loop" else _replay_fn
     start = time.perf_counter()
     executable = jax.jit(jax.vmap(build(env, controller), in_axes=(0, 0, axis))).lower(*args).compile()
-    # env and controller are kept in the entry so their ids cannot be reused by new objects while cached.
-    _COMPILED[cache_key] = (env, controller, executable)
+    entries[cache_key] = (env, executable)
     return executable, time.perf_counter() - start
 
 

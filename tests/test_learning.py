@@ -1,9 +1,12 @@
 """PPO and SAC learn cart-pole stabilization within the default budget of configs/cartpole_stabilization.yaml.
 
 "Learned" means, on 32 evaluation episodes drawn like the training ones (initial state, masses, sensor noise): no
-crash, and the deterministic policy's RMSE within 2.5x LQR's on the same episodes (LQR has the true model; the
-budgets reach 1.2-2x on seeds 0-2, see README "Training"), where the untrained policy's is far worse. Each test
-trains the whole budget in one jitted ``make_train`` call: about 30-60 s on 2 CPU cores.
+crash, and the deterministic policy's RMSE within 4x LQR's on the same episodes (LQR has the true model), where
+the untrained policy falls in most episodes or drifts to over ten times that. The budgets reach 1.2-1.7x (PPO) and
+1.4-3.1x (SAC) on seeds 0-2; the same seed lands anywhere in that range on another machine, because training
+amplifies rounding differences (SAC's seed 0 gives 1.4x or 3.1x depending only on OPENBLAS_CORETYPE), so the bound
+leaves room for the spread rather than for one machine's numbers. Each test trains the whole budget in one jitted
+``make_train`` call: about 25-60 s on 2 CPU cores.
 """
 
 import jax
@@ -17,7 +20,7 @@ from algorithms.rl.policy import algorithm_module
 from scg_jax.config import load_config, make_from_config
 
 EPISODES = 32
-RMSE_FACTOR = 2.5
+RMSE_FACTOR = 4.0
 
 
 @pytest.fixture(scope="module")
