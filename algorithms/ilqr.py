@@ -429,7 +429,7 @@ def ilqr_solve(
 
 # --------------------------------------------------------------------------------------------- controller
 DISCRETIZATIONS = ("rk4", "env")
-TERMINAL_WEIGHTS = ("dare", "q")
+TERMINAL_WEIGHTS = ("dare", "stage")
 WARM_STARTS = ("lqr", "open_loop")
 
 
@@ -444,7 +444,7 @@ class Options:
     terminal_weight: str = option(
         "dare",
         "terminal weight: the infinite-horizon LQR cost-to-go P (discrete Riccati solution about the goal, "
-        "equilibrium input) or Q",
+        "equilibrium input) or the stage weight Q (stage)",
         choices=TERMINAL_WEIGHTS,
     )
     terminal_scale: float = option(1.0, "factor on the terminal weight")
@@ -573,7 +573,7 @@ def make_ilqr(env, prior_params, options=None) -> JaxController:
             field = "terminal_weight" if opts.terminal_weight == "dare" else "warm_start"
             raise ValueError(
                 f"{path}.{field}: the discrete Riccati equation about the goal has no stabilising solution ({error}); "
-                "use terminal_weight 'q' and warm_start 'open_loop'"
+                "use terminal_weight 'stage' and warm_start 'open_loop'"
             ) from error
         if opts.terminal_weight == "dare":
             P = P_dare
