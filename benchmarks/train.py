@@ -61,16 +61,17 @@ def _config(cfg, algo: str, **changes):
     return parse_options(config_class, options, f"training.{algo}")
 
 
-def _policy_evaluator(env, params, episodes: int, make_policy, name: str):
+def _policy_evaluator(env, params, episodes: int, make_policy, name: str, action_scale: float = 1.0):
     """``evaluate_fn(policy_params, key) -> Evaluation`` of the deterministic policy ``make_policy(policy_params)``
-    (actions in [-1, 1]); compiled once, so evaluating after every chunk of training costs no compile."""
+    (actions in [-1, 1], times ``action_scale``); compiled once, so evaluating after every chunk of training costs
+    no compile."""
     physics = params.physics
 
     def build(policy_params):
         policy = make_policy(policy_params)
 
         def act(ctrl_state, obs, step, reference):
-            return policy_action_to_input(env, policy(obs), physics), ctrl_state
+            return policy_action_to_input(env, policy(obs), physics, action_scale), ctrl_state
 
         return JaxController(name, lambda key, reference: (), act)
 
@@ -161,7 +162,7 @@ def ours_time_to_threshold(env, params, cfg, threshold, eval_key, episodes, max_
     config = _config(cfg, "ppo")
     learner = algorithm_module("ppo", "make_learner")(config, env)
     evaluate_policy = _policy_evaluator(
-        env, params, episodes, lambda p: lambda obs: learner.make_policy(p)(obs, None), "ppo"
+        env, params, episodes, lambda p: lambda obs: learner.make_policy(p)(obs, None), "ppo", config.action_scale
     )
     # The chunk length is traced (a while loop), so changing it never recompiles.
     chunk_jit = jax.jit(

@@ -12,11 +12,9 @@ leaves room for the spread rather than for one machine's numbers. Each test trai
 import jax
 import pytest
 
-from algorithms.base import JaxController
 from algorithms.evaluation import evaluate
 from algorithms.lqr import make_lqr
-from algorithms.rl.envs import policy_action_to_input
-from algorithms.rl.policy import algorithm_module
+from algorithms.rl.policy import algorithm_module, policy_controller
 from scg_jax.config import load_config, make_from_config
 
 EPISODES = 32
@@ -32,12 +30,7 @@ def cartpole():
 
 
 def _policy_summary(env, params, learner, runner_state):
-    policy = learner.make_policy(learner.policy_params(runner_state))
-
-    def act(ctrl_state, obs, step, reference):
-        return policy_action_to_input(env, policy(obs, None), params.physics), ctrl_state
-
-    controller = JaxController(learner.name, lambda key, reference: (), act)
+    controller = policy_controller(env, params, learner, learner.policy_params(runner_state))
     return evaluate(env, params, controller, jax.random.key(123), EPISODES, measure_time=False).summary
 
 

@@ -18,6 +18,7 @@ from algorithms.rl.envs import (
     init_episode_stats,
     initial_episode_means,
     make_train_env,
+    policy_action_to_input,
     update_episode_stats,
 )
 from algorithms.rl.normalization import RunningStats, init_stats, normalize, update_stats
@@ -193,6 +194,28 @@ def test_train_env_keeps_the_final_observation_and_counts_episodes():
     assert {name: float(repeated[name]) for name in previous} == {n: float(v) for n, v in previous.items()}
     with pytest.raises(ValueError, match="num_envs: must be a positive integer"):
         make_train_env(env, 0)
+
+
+def test_action_scale_widens_a_quadrotor_policy_to_twice_hover_thrust():
+    env = scg_jax.make("quadrotor_2d")
+    params = env.default_params
+    hover = np.asarray(env.system.equilibrium_input(params.physics))
+    a = jnp.array([1.0, -0.5])
+    # Scale 1 is the env's normalised action: hover (1 + 0.1 a); scale 10: hover (1 + a); a is clipped first.
+    np.testing.assert_allclose(policy_action_to_input(env, a, params.physics), hover * [1.1, 0.95], rtol=1e-6)
+    np.testing.assert_allclose(policy_action_to_input(env, a, params.physics, 10.0), hover * [2.0, 0.5], rtol=1e-6)
+    np.testing.assert_allclose(
+        policy_action_to_input(env, 3 * a, params.physics, 10.0), hover * [2.0, 0.0], rtol=1e-6, atol=1e-9
+    )
+    # The training env commands the scaled input; the plant clips it to the motors' limits.
+    train_env = make_train_env(env, 2, action_scale=10.0)
+    _, state = train_env.reset(jax.random.key(0), params)
+    out = train_env.step(state, jnp.stack([a, -a]), params)
+    np.testing.assert_allclose(out.info["u_cmd"][0], hover * [2.0, 0.5], rtol=1e-6)
+    u_low, u_high = env.system.input_bounds(params.physics)
+    np.testing.assert_allclose(out.info["u"][0], np.clip(hover * [2.0, 0.5], u_low, u_high), rtol=1e-6)
+    with pytest.raises(ValueError, match="action_scale: must be positive"):
+        make_train_env(env, 2, action_scale=0.0)
 
 
 # --------------------------------------------------------------------------------------------- resume

@@ -47,11 +47,16 @@ class Config:
     actor_hidden: tuple = option((64, 64), "hidden layer sizes of the policy mean network")
     critic_hidden: tuple = option((64, 64), "hidden layer sizes of the value network")
     activation: str = option("tanh", "hidden activation", choices=tuple(ACTIVATIONS))
+    action_scale: float = option(
+        1.0,
+        "factor on the policy's action in [-1, 1] before the env's normalised-action conversion "
+        "(10: a quadrotor policy spans 0-2x hover thrust)",
+    )
 
     def _check(self, path: str) -> None:
         for name in ("total_env_steps", "num_envs", "rollout_length", "num_epochs", "num_minibatches"):
             positive(f"{path}.{name}", getattr(self, name))
-        for name in ("learning_rate", "max_grad_norm", "clip_eps", "reward_scale", "obs_clip"):
+        for name in ("learning_rate", "max_grad_norm", "clip_eps", "reward_scale", "obs_clip", "action_scale"):
             positive(f"{path}.{name}", getattr(self, name))
         for name in ("gamma", "gae_lambda"):
             if not 0.0 <= getattr(self, name) <= 1.0:

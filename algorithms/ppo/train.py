@@ -120,7 +120,7 @@ def _learning_rate(config: Config, opt_state):
 
 def _functions(config: Config, env):
     """init, update, policy_params and make_policy of a PPO run on ``env``."""
-    train_env = make_train_env(env, config.num_envs)
+    train_env = make_train_env(env, config.num_envs, config.action_scale)
     actor, critic = _networks(config, train_env.action_size)
     optimizer = _optimizer(config)
     n, batch = config.num_envs, config.batch_size

@@ -53,13 +53,19 @@ class EnvStep(NamedTuple):
     info: dict
 
 
-def policy_action_to_input(env: Env, a, physics):
-    """Physical input ``u`` (nu,) in N for a normalised policy action ``a`` (nu,), clipped to [-1, 1] first.
+def policy_action_to_input(env: Env, a, physics, action_scale: float = 1.0):
+    """Physical input ``u`` (nu,) in N for a policy action ``a`` (nu,): ``a`` is clipped to [-1, 1], multiplied by
+    ``action_scale`` and converted as the env's normalised action.
+
+    With ``action_scale`` 1 a policy has the env's normalised range: the cart-pole's whole force range, but only
+    +-10% of hover thrust for the quadrotors (the original suite's scale); 10 gives a quadrotor policy 0-2x hover
+    thrust, about the actuator range (the plant still clips to its limits).
 
     Args:
         env: the ``scg_jax.Env``. a: (nu,) policy action. physics: the system's ``Params`` (nominal values).
+        action_scale: factor on the clipped action (a learner's ``action_scale`` option).
     """
-    return env.system.action_to_input(jnp.clip(a, -1.0, 1.0), physics)
+    return env.system.action_to_input(action_scale * jnp.clip(a, -1.0, 1.0), physics)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -70,12 +76,14 @@ class TrainEnv:
 
     Attributes:
         env: the ``scg_jax.Env``. num_envs: N. obs_size: ``env.observation_size``. action_size: ``env.action_size``.
+        action_scale: factor on the policy's action before the env's conversion (``policy_action_to_input``).
     """
 
     env: Env
     num_envs: int
     obs_size: int
     action_size: int
+    action_scale: float = 1.0
 
     def reset(self, key, params: EnvParams):
         """N fresh episodes from ``key`` (split N ways). Returns ``(obs (N, obs_size), batched EnvState)``."""
@@ -88,7 +96,7 @@ class TrainEnv:
         """
 
         def one(state, a):
-            u = policy_action_to_input(self.env, a, params.physics)
+            u = policy_action_to_input(self.env, a, params.physics, self.action_scale)
             return auto_reset_step(self.env, state, self.env.input_to_action(u, params), params)
 
         out = jax.vmap(one)(state, action)
@@ -97,11 +105,20 @@ class TrainEnv:
         return EnvStep(out.obs, out.state, out.reward, out.cost, out.terminated, out.truncated, final_obs, info)
 
 
-def make_train_env(env: Env, num_envs: int) -> TrainEnv:
-    """``TrainEnv`` of ``num_envs`` copies of ``env`` (any ``action_mode``; policies act in [-1, 1])."""
+def make_train_env(env: Env, num_envs: int, action_scale: float = 1.0) -> TrainEnv:
+    """``TrainEnv`` of ``num_envs`` copies of ``env`` (any ``action_mode``; policies act in [-1, 1], times
+    ``action_scale``)."""
     if isinstance(num_envs, bool) or int(num_envs) != num_envs or num_envs < 1:
         raise ValueError(f"num_envs: must be a positive integer, got {num_envs!r}")
-    return TrainEnv(env=env, num_envs=int(num_envs), obs_size=env.observation_size, action_size=env.action_size)
+    if not action_scale > 0:
+        raise ValueError(f"action_scale: must be positive, got {action_scale!r}")
+    return TrainEnv(
+        env=env,
+        num_envs=int(num_envs),
+        obs_size=env.observation_size,
+        action_size=env.action_size,
+        action_scale=float(action_scale),
+    )
 
 
 # --------------------------------------------------------------------------------------------- episode statistics

@@ -54,11 +54,21 @@ def load_policy(directory, env, params) -> JaxController:
     target = jax.eval_shape(lambda key: learner.policy_params(learner.init(key, params)), jax.random.PRNGKey(0))
     policy_params, _ = load_checkpoint(directory, POLICY_NAME, target)
     policy_params = jax.tree.map(jnp.asarray, policy_params)
+    info = {"directory": str(directory), "iterations": meta.get("iterations"), "env_steps": meta.get("env_steps")}
+    return policy_controller(env, params, learner, policy_params, info=info)
+
+
+def policy_controller(env, params, learner, policy_params, info=None) -> JaxController:
+    """The deterministic policy of ``learner`` with ``policy_params`` as a stateless ``JaxController``.
+
+    ``act`` returns ``u = policy_action_to_input(env, a, params.physics, learner.config.action_scale)`` (nu,) in N
+    for the mean action ``a``; ``ctrl_state = ()``. The controller is named after the learner.
+    """
     policy = learner.make_policy(policy_params)
     physics = params.physics
+    action_scale = getattr(learner.config, "action_scale", 1.0)
 
     def act(ctrl_state, obs, step, reference):
-        return policy_action_to_input(env, policy(obs, None), physics), ctrl_state
+        return policy_action_to_input(env, policy(obs, None), physics, action_scale), ctrl_state
 
-    info = {"directory": str(directory), "iterations": meta.get("iterations"), "env_steps": meta.get("env_steps")}
-    return JaxController(name=meta["algo"], reset_fn=lambda key, reference: (), act_fn=act, info=info)
+    return JaxController(name=learner.name, reset_fn=lambda key, reference: (), act_fn=act, info=dict(info or {}))

@@ -48,11 +48,16 @@ class Config:
     reward_scale: float = option(1.0, "multiplies the reward before learning")
     normalize_observations: bool = option(True, "standardise observations with running statistics")
     max_grad_norm: float = option(0.0, "global gradient-norm clip of every optimiser (0: off)")
+    action_scale: float = option(
+        1.0,
+        "factor on the policy's action in [-1, 1] before the env's normalised-action conversion "
+        "(10: a quadrotor policy spans 0-2x hover thrust)",
+    )
 
     def _check(self, path: str) -> None:
         for name in ("total_env_steps", "num_envs", "rollout_steps", "buffer_size", "batch_size"):
             positive(f"{path}.{name}", getattr(self, name))
-        for name in ("utd", "actor_lr", "critic_lr", "alpha_lr", "init_alpha", "reward_scale"):
+        for name in ("utd", "actor_lr", "critic_lr", "alpha_lr", "init_alpha", "reward_scale", "action_scale"):
             positive(f"{path}.{name}", getattr(self, name))
         if self.warmup_steps < 0:
             raise ValueError(f"{path}.warmup_steps: must be >= 0, got {self.warmup_steps}")

@@ -174,7 +174,7 @@ class _Parts(NamedTuple):
 
 def _build(config: Config, env) -> _Parts:
     """The pure ``init(key, params)`` and ``iteration(state, params, learning)`` of ``config`` on ``env``."""
-    train_env = rl_envs.make_train_env(env, config.num_envs)
+    train_env = rl_envs.make_train_env(env, config.num_envs, config.action_scale)
     obs_size, action_size = train_env.obs_size, train_env.action_size
     actor, critic = make_networks(config, action_size)
     policy_fn = make_policy_fn(config, action_size)
