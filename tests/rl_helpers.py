@@ -1,5 +1,8 @@
 """Helpers shared by the PPO and SAC tests."""
 
+import jax
+import jax.numpy as jnp
+
 from algorithms.rl.training import run_training
 
 
@@ -20,3 +23,11 @@ def run_training_capturing_policy(learner, env, params, key, out_dir):
         learner._replace(policy_params=policy_params), env, params, key, out_dir, progress=False, csv=False
     )
     return captured[-1], result
+
+
+def run_seeds_twice(make_train, config, env, params, num_seeds: int):
+    """``make_train(config, env)`` vmapped over the keys of seeds ``0..num_seeds-1`` and seed 0 again (the last
+    lane), jitted once and run twice. Returns ``(keys, first, second)``."""
+    train = jax.jit(jax.vmap(make_train(config, env), in_axes=(0, None)))
+    keys = jnp.stack([jax.random.key(seed) for seed in (*range(num_seeds), 0)])
+    return keys, train(keys, params), train(keys, params)

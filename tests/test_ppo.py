@@ -15,7 +15,7 @@ from algorithms.ppo import Config, losses, make_learner, make_train
 from algorithms.rl.envs import policy_action_to_input
 from algorithms.rl.normalization import init_stats
 from algorithms.rl.policy import load_policy
-from tests.rl_helpers import run_training_capturing_policy
+from tests.rl_helpers import run_seeds_twice, run_training_capturing_policy
 
 # 4 iterations of 8 copies x 16 steps; one epoch of one minibatch, so the first (only) gradient step of an iteration
 # evaluates the loss at the rollout's own parameters (ratio 1: see test_rollout_log_probs_are_recomputed_exactly).
@@ -41,11 +41,7 @@ def cartpole():
 def seeds_run(cartpole):
     """``make_train`` vmapped over the keys of seeds 0..3 and seed 0 again (lane 4), jitted once; run twice."""
     env, params = cartpole
-    train = jax.jit(jax.vmap(make_train(TINY, env), in_axes=(0, None)))
-    keys = jnp.stack([jax.random.key(seed) for seed in (*range(NUM_SEEDS), 0)])
-    first = train(keys, params)
-    second = train(keys, params)
-    return keys, first, second
+    return run_seeds_twice(make_train, TINY, env, params, NUM_SEEDS)
 
 
 # --------------------------------------------------------------------------------------------- GAE

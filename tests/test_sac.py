@@ -14,7 +14,7 @@ from algorithms.rl.envs import policy_action_to_input
 from algorithms.rl.normalization import init_stats
 from algorithms.rl.policy import load_policy
 from algorithms.sac import Config, losses, make_learner, make_policy_from_config, make_train, parse_config, replay
-from tests.rl_helpers import run_training_capturing_policy
+from tests.rl_helpers import run_seeds_twice, run_training_capturing_policy
 
 # 100 iterations of 8 transitions, 2 gradient steps each after 25 warm-up iterations (200 transitions); the buffer
 # holds 400 transitions, so it wraps around twice.
@@ -41,11 +41,7 @@ def cartpole():
 def seeds_run(cartpole):
     """``make_train`` vmapped over the keys of seeds 0..3 and seed 0 again (lane 4), jitted once; run twice."""
     env, params = cartpole
-    train = jax.jit(jax.vmap(make_train(TINY, env), in_axes=(0, None)))
-    keys = jnp.stack([jax.random.key(seed) for seed in (*range(NUM_SEEDS), 0)])
-    first = train(keys, params)
-    second = train(keys, params)
-    return keys, first, second
+    return run_seeds_twice(make_train, TINY, env, params, NUM_SEEDS)
 
 
 # --------------------------------------------------------------------------------------------- losses
