@@ -25,9 +25,6 @@ Configs: ``configs/paper_cartpole_lqr_mpc.yaml`` (stabilization, 15 Hz, 90 steps
 from __future__ import annotations
 
 import argparse
-import datetime
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -36,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from machine import cpu_count, load_average  # benchmarks/machine.py, beside this script
+from machine import load_average, print_machine, run_record  # benchmarks/machine.py, beside this script
 from rich import box
 from rich.console import Console
 from rich.table import Table
@@ -276,26 +273,12 @@ def print_report(console: Console, rows: list[dict], meta: dict) -> None:
 # --------------------------------------------------------------------------------------------- main
 def main(argv=None) -> int:
     args = parse_args(argv)
-    import scg_jax
-
     console = Console()
     if not console.is_terminal:
         console = Console(width=max(console.width, 170))
     started = time.perf_counter()
-    dev = jax.devices()[0]
-    device = {"platform": dev.platform, "device_kind": dev.device_kind, "count": jax.device_count()}
-    cores = cpu_count()
     meta = {
-        "benchmark": "control",
-        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "jax_version": jax.__version__,
-        "scg_jax_version": scg_jax.__version__,
-        "python": platform.python_version(),
-        "machine": platform.platform(),
-        "device": device,
-        "cpu_count": cores,
-        "cpu_count_total": os.cpu_count(),
-        "load_average_start": load_average(),
+        **run_record("control"),
         "config": {
             "systems": args.systems,
             "parts": args.parts,
@@ -316,13 +299,7 @@ def main(argv=None) -> int:
             "description": "original safe-control-gym IPOPT MPC per control step, as quoted in the issue",
         },
     }
-    console.print(
-        f"jax {jax.__version__} on {device['platform']} ({device['device_kind']}), {cores} CPU cores, load average "
-        f"{meta['load_average_start']}",
-        highlight=False,
-    )
-    if meta["load_average_start"] and meta["load_average_start"][0] > 0.5 * cores:
-        console.print("[yellow]warning: the machine is busy (load average above half the cores); timings may be low")
+    print_machine(console, meta)
 
     rows = []
     for name in args.systems:

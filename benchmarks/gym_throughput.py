@@ -30,8 +30,6 @@ Run ``python benchmarks/gym_throughput.py --help`` for the options (``--quick`` 
 from __future__ import annotations
 
 import argparse
-import datetime
-import platform
 import time
 from pathlib import Path
 
@@ -40,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from machine import cpu_count, load_average  # benchmarks/machine.py, beside this script
+from machine import load_average, print_machine, run_record  # benchmarks/machine.py, beside this script
 from rich import box
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -171,19 +169,9 @@ def main(argv=None) -> int:
     if not console.is_terminal:
         console = Console(width=max(console.width, 150))
     env_id = GYMNASIUM_IDS[args.system]
-    dev = jax.devices()[0]
-    cores = cpu_count()
     meta = {
-        "benchmark": "gym_throughput",
-        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "jax_version": jax.__version__,
+        **run_record("gym_throughput"),
         "gymnasium_version": gymnasium.__version__,
-        "scg_jax_version": scg_jax.__version__,
-        "python": platform.python_version(),
-        "machine": platform.platform(),
-        "device": {"platform": dev.platform, "device_kind": dev.device_kind, "count": jax.device_count()},
-        "cpu_count": cores,
-        "load_average_start": load_average(),
         "config": {
             "env_id": env_id,
             "num_envs": args.num_envs,
@@ -198,13 +186,8 @@ def main(argv=None) -> int:
             "stat": "median",
         },
     }
-    console.print(
-        f"{env_id}: jax {jax.__version__}, gymnasium {gymnasium.__version__} on {dev.platform} "
-        f"({dev.device_kind}), {cores} CPU cores, load average {meta['load_average_start']}",
-        highlight=False,
-    )
-    if meta["load_average_start"] and meta["load_average_start"][0] > 0.5 * cores:
-        console.print("[yellow]warning: the machine is busy (load average above half the cores); timings may be low")
+    cores = meta["cpu_count"]
+    print_machine(console, meta, prefix=f"{env_id} (gymnasium {gymnasium.__version__}): ")
 
     columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"))
     loops = {}

@@ -26,10 +26,7 @@ Run ``python benchmarks/throughput.py --help`` for the options; see benchmarks/R
 from __future__ import annotations
 
 import argparse
-import datetime
 import math
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -38,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from machine import cpu_count, load_average  # benchmarks/machine.py, beside this script
+from machine import load_average, print_machine, run_record  # benchmarks/machine.py, beside this script
 from rich import box
 from rich.console import Console
 from rich.table import Table
@@ -356,21 +353,9 @@ def main(argv=None) -> int:
     if not console.is_terminal:
         console = Console(width=max(console.width, 170))
     started = time.perf_counter()
-    dev = jax.devices()[0]
-    device = {"platform": dev.platform, "device_kind": dev.device_kind, "count": jax.device_count()}
-    cores = cpu_count()
     meta = {
-        "benchmark": "throughput",
-        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "jax_version": jax.__version__,
+        **run_record("throughput"),
         "jaxlib_version": getattr(jax.lib, "__version__", None) or jax.__version__,
-        "scg_jax_version": scg_jax.__version__,
-        "python": platform.python_version(),
-        "machine": platform.platform(),
-        "device": device,
-        "cpu_count": cores,
-        "cpu_count_total": os.cpu_count(),
-        "load_average_start": load_average(),
         "config": {
             "task": "stabilization",
             "action": "constant u_ref = system.equilibrium_input(params.physics), physical",
@@ -393,14 +378,10 @@ def main(argv=None) -> int:
             "description": "original safe-control-gym, PyBullet, one env, 50/1000 Hz, constraints and disturbances",
         },
     }
-    console.print(
-        f"jax {jax.__version__} on {device['platform']} ({device['device_kind']}), {cores} CPU cores, load average "
-        f"{meta['load_average_start']}; {args.integrator}, {args.ctrl_freq}/{args.physics_freq} Hz, "
-        f"{meta['config']['dtype']}",
-        highlight=False,
+    device, cores = meta["device"], meta["cpu_count"]
+    print_machine(
+        console, meta, suffix=f"; {args.integrator}, {args.ctrl_freq}/{args.physics_freq} Hz, {meta['config']['dtype']}"
     )
-    if meta["load_average_start"] and meta["load_average_start"][0] > 0.5 * cores:
-        console.print("[yellow]warning: the machine is busy (load average above half the cores); timings may be low")
 
     total = len(args.systems) * len(args.batches) * 3
     done = 0

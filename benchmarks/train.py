@@ -25,9 +25,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime
 import functools
-import platform
 import sys
 import time
 import warnings
@@ -36,7 +34,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from machine import cpu_count, load_average  # benchmarks/machine.py, beside this script
+from machine import load_average, print_machine, run_record  # benchmarks/machine.py, beside this script
 from rich.console import Console
 from rich.table import Table
 
@@ -303,16 +301,13 @@ def main(argv=None) -> int:
     cfg = load_config(args.config, args.set)
     env, params = make_from_config(cfg)
     record = {
+        **run_record("train"),
         "config": str(args.config),
         "overrides": args.set,
-        "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "device": str(jax.devices()[0]),
-        "cpu_count": cpu_count(),
-        "load_average": load_average(),
-        "python": platform.python_version(),
-        "jax": jax.__version__,
         "hyperparameters": {algo: dataclasses.asdict(_config(cfg, algo)) for algo in ("ppo", "sac")},
     }
+
+    print_machine(console, record)
 
     rows = []
     for algo in args.algos:
@@ -321,7 +316,8 @@ def main(argv=None) -> int:
             rows.append(throughput(env, params, cfg, algo, batch, args.iterations, args.repeats))
     record["throughput"] = rows
     if rows:
-        table = Table(title=f"training throughput, {env.system.name} {env.task}, {record['device']}")
+        device = f"{record['device']['platform']} ({record['device']['device_kind']})"
+        table = Table(title=f"training throughput, {env.system.name} {env.task}, {device}")
         for column in ("algo", "copies", "train steps/s", "env steps/s", "train / env", "compile s"):
             table.add_column(column, justify="right")
         for row in rows:
@@ -382,6 +378,7 @@ def main(argv=None) -> int:
             prefix = "" if brax["reached"] else ">= "
             record["time_to_threshold"]["brax_over_ours"] = ratio
             console.print(f"brax / ours time to threshold: {prefix}{ratio:.2f} (> 1: ours is faster)")
+    record["load_average_end"] = load_average()
     args.json.parent.mkdir(parents=True, exist_ok=True)
     write_json(args.json, record)
     console.print(f"wrote {args.json}")
