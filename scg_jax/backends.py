@@ -5,6 +5,8 @@ arithmetic and indexing, so the same function returns a ``jax.numpy`` array of s
 arrays and a CasADi ``SX`` column of shape ``(n, 1)`` when given CasADi symbols. ``xp.constant`` turns a numpy
 array into the backend's constant type and ``xp.repeat(n, body, x)`` applies ``body`` n times (a
 ``lax.fori_loop`` under JAX, so the compiled graph does not grow with the number of physics substeps).
+``xp.exp`` and ``xp.dot`` (inner product of two vectors) serve the Gaussian-process posterior, which is written
+once and evaluated on both backends like the dynamics.
 """
 
 from __future__ import annotations
@@ -33,6 +35,8 @@ jax_backend = SimpleNamespace(
     cos=jnp.cos,
     tan=jnp.tan,
     sqrt=jnp.sqrt,
+    exp=jnp.exp,
+    dot=jnp.dot,
     stack=jnp.stack,
     concatenate=jnp.concatenate,
     matmul=jnp.matmul,
@@ -47,6 +51,8 @@ casadi_backend = SimpleNamespace(
     cos=cs.cos,
     tan=cs.tan,
     sqrt=cs.sqrt,
+    exp=cs.exp,
+    dot=cs.dot,
     stack=lambda items: cs.vertcat(*items),
     concatenate=lambda items: cs.vertcat(*items),
     matmul=cs.mtimes,

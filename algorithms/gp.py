@@ -1,0 +1,351 @@
+"""Gaussian-process regression of a model error, written once for JAX and CasADi.
+
+One independent GP per output dimension (Hewing et al. 2019; the original suite's GP-MPC): zero mean, an ARD
+kernel (squared exponential ``"rbf"`` or Matérn 5/2 ``"matern52"``) with per-output length scales, signal
+variance and noise variance. Hyperparameters are fit by maximising the log marginal likelihood with optax's
+L-BFGS, in float64, on the host's or accelerator's JAX.
+
+Every posterior, exact or sparse, is stored in one form, so one function evaluates it:
+
+    mean_i(z) = k_i(z, Z)ᵀ w_i,        var_i(z) = s_i − k_i(z, Z)ᵀ V_i k_i(z, Z)
+
+- exact: ``Z = X`` (the data), ``w_i = (K_i + σ_i² I)⁻¹ y_i`` and ``V_i = (K_i + σ_i² I)⁻¹``;
+- FITC (Snelson & Ghahramani 2006; what the original's MPC uses): ``Z`` are M inducing points,
+  ``w_i = Σ_i⁻¹ K_ZX Γ_i⁻¹ y_i`` and ``V_i = K_ZZ⁻¹ − Σ_i⁻¹`` with ``Σ_i = K_ZZ + K_ZX Γ_i⁻¹ K_XZ`` and
+  ``Γ_i = diag(K_XX − Q_XX) + σ_i²``. With ``Z = X`` it equals the exact posterior; its cost per prediction is
+  O(M d) instead of O(n d), which bounds the MPC's solve time whatever the amount of data.
+
+``predict(posterior, z, xp)`` is written against the ``xp`` backends of ``scg_jax.backends``: with JAX arrays it
+returns ``(mean (m,), var (m,))`` (vmap it for batches); with a CasADi ``SX``/``MX`` column it returns CasADi
+expressions ``(m, 1)`` for the MPC. The variance is the latent function's (add ``noise_var`` for a noisy
+observation).
+
+Inducing points are chosen by a stated rule, as in the original: k-means (Lloyd) centroids of the training
+inputs, each snapped to its nearest training input (distinct points, so they stay on the data).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import struct
+
+from scg_jax.backends import casadi_backend, jax_backend
+
+KERNELS = ("rbf", "matern52")
+_SQRT5 = math.sqrt(5.0)
+# Added to the scaled squared distance inside the Matérn kernel's square root: its derivative is infinite at 0.
+_MATERN_EPS = 1e-12
+_JITTER = 1e-8  # relative diagonal jitter of K_ZZ (inducing points can be close)
+
+
+@struct.dataclass
+class GPHyperparams:
+    """Hyperparameters of ``m`` independent GPs on ``d`` inputs (positive values, not logs).
+
+    Leaves are numpy float64 arrays as ``hyperparams`` and ``fit_hyperparams`` return them.
+
+    Attributes:
+        length_scales: (m, d), in the units of each input.
+        signal_var: (m,), in target units squared.
+        noise_var: (m,), in target units squared.
+    """
+
+    length_scales: jax.Array
+    signal_var: jax.Array
+    noise_var: jax.Array
+
+
+@struct.dataclass
+class GPPosterior:
+    """A fitted GP in the common form above; numpy or JAX arrays.
+
+    Attributes:
+        inputs: (M, d) the points ``Z`` the posterior is expressed in (data or inducing points).
+        weights: (m, M) mean weights ``w_i``.
+        var_matrix: (m, M, M) ``V_i``.
+        hyperparams: the ``GPHyperparams``.
+        kernel: ``"rbf"`` or ``"matern52"`` (static).
+    """
+
+    inputs: jax.Array
+    weights: jax.Array
+    var_matrix: jax.Array
+    hyperparams: GPHyperparams
+    kernel: str = struct.field(pytree_node=False, default="rbf")
+
+    @property
+    def num_outputs(self) -> int:
+        return self.weights.shape[0]
+
+    @property
+    def num_inputs(self) -> int:
+        return self.inputs.shape[1]
+
+
+def check_kernel(kernel: str, path: str = "kernel") -> str:
+    if kernel not in KERNELS:
+        raise ValueError(f"{path}: unknown value {kernel!r}; allowed values are {', '.join(KERNELS)}")
+    return kernel
+
+
+def hyperparams(length_scales, signal_var, noise_var, path: str = "hyperparams") -> GPHyperparams:
+    """Checked ``GPHyperparams`` from values: every entry finite and > 0, shapes (m, d), (m,), (m,)."""
+    values = {
+        "length_scales": np.atleast_2d(np.asarray(length_scales, dtype=float)),
+        "signal_var": np.atleast_1d(np.asarray(signal_var, dtype=float)),
+        "noise_var": np.atleast_1d(np.asarray(noise_var, dtype=float)),
+    }
+    m = values["length_scales"].shape[0]
+    for name, value in values.items():
+        if not np.all(np.isfinite(value)) or np.any(value <= 0.0):
+            raise ValueError(f"{path}.{name}: must be positive and finite, got {value.tolist()}")
+        if value.shape[0] != m or value.ndim != (2 if name == "length_scales" else 1):
+            raise ValueError(f"{path}.{name}: expected {m} outputs, got shape {value.shape}")
+    return GPHyperparams(**values)  # numpy float64: JAX would round to float32 outside an x64 scope
+
+
+# ---------------------------------------------------------------------------------------------------- kernels
+def _kernel_of_sq_dist(sq_dist, signal_var, kernel: str, xp):
+    """The kernel as a function of the length-scaled squared distance; one definition for both backends."""
+    if kernel == "rbf":
+        return signal_var * xp.exp(-0.5 * sq_dist)
+    r = _SQRT5 * xp.sqrt(sq_dist + _MATERN_EPS)
+    return signal_var * (1.0 + r + r * r / 3.0) * xp.exp(-r)
+
+
+def kernel_matrix(x1, x2, length_scales, signal_var, kernel: str = "rbf"):
+    """``K(x1, x2)`` (n1, n2) of one output's kernel; x1 (n1, d), x2 (n2, d), length_scales (d,). JAX only."""
+    a, b = x1 / length_scales, x2 / length_scales
+    sq = jnp.sum(a * a, -1)[:, None] - 2.0 * a @ b.T + jnp.sum(b * b, -1)[None, :]
+    return _kernel_of_sq_dist(jnp.maximum(sq, 0.0), signal_var, kernel, jax_backend)
+
+
+def _kernel_vector(z, inputs, length_scales, signal_var, kernel: str, xp):
+    """``k(z, Z)``: (M,) under JAX, (M, 1) under CasADi, for one query point z (d,) or (d, 1)."""
+    inv = 1.0 / np.asarray(length_scales) if xp is casadi_backend else 1.0 / length_scales
+    scaled_inputs = inputs * inv  # (M, d) constant
+    zs = z * xp.constant(inv)
+    sq = xp.dot(zs, zs) - 2.0 * xp.matmul(xp.constant(scaled_inputs), zs)
+    sq = sq + xp.constant((scaled_inputs * scaled_inputs).sum(-1))
+    return _kernel_of_sq_dist(sq, signal_var, kernel, xp)
+
+
+def predict(posterior: GPPosterior, z, xp=jax_backend):
+    """Posterior mean and latent variance at one input ``z``.
+
+    Args:
+        posterior: a ``GPPosterior``. For ``xp = casadi_backend`` its arrays must be numpy (``to_numpy``).
+        z: (d,) JAX array, or a CasADi column (d, 1) of symbols or numbers.
+        xp: the backend namespace.
+
+    Returns:
+        ``(mean, var)``: (m,) JAX arrays, or CasADi columns (m, 1).
+    """
+    hp = posterior.hyperparams
+    means, variances = [], []
+    for i in range(posterior.num_outputs):
+        k = _kernel_vector(z, posterior.inputs, hp.length_scales[i], hp.signal_var[i], posterior.kernel, xp)
+        means.append(xp.dot(xp.constant(posterior.weights[i]), k))
+        variances.append(hp.signal_var[i] - xp.dot(k, xp.matmul(xp.constant(posterior.var_matrix[i]), k)))
+    return xp.stack(means), xp.stack(variances)
+
+
+def predict_batch(posterior: GPPosterior, z):
+    """``predict`` over a batch ``z`` (N, d) -> mean (N, m), var (N, m); JAX."""
+    return jax.vmap(lambda zi: predict(posterior, zi, jax_backend))(z)
+
+
+def to_numpy(posterior: GPPosterior) -> GPPosterior:
+    """The posterior with numpy float64 leaves: what the CasADi path and saving need."""
+    return jax.tree.map(lambda a: np.asarray(a, dtype=np.float64), posterior)
+
+
+def casadi_function(posterior: GPPosterior, name: str = "gp"):
+    """``casadi.Function(name, [z (d, 1)], [mean (m, 1), var (m, 1)])`` of the posterior."""
+    import casadi as cs
+
+    numpy_posterior = to_numpy(posterior)
+    z = cs.SX.sym("z", numpy_posterior.num_inputs)
+    mean, var = predict(numpy_posterior, z, casadi_backend)
+    return cs.Function(name, [z], [mean, var], ["z"], ["mean", "var"])
+
+
+# ------------------------------------------------------------------------------------------------- posteriors
+def _check_data(inputs, targets):
+    x = np.asarray(inputs, dtype=float)
+    y = np.asarray(targets, dtype=float)
+    if x.ndim != 2 or y.ndim != 2 or x.shape[0] != y.shape[0]:
+        raise ValueError(f"data: expected inputs (n, d) and targets (n, m), got {x.shape} and {y.shape}")
+    if x.shape[0] == 0:
+        raise ValueError("data: no training points")
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+        raise ValueError("data: inputs and targets must be finite")
+    return x, y
+
+
+def exact_posterior(inputs, targets, hp: GPHyperparams, kernel: str = "rbf") -> GPPosterior:
+    """The exact posterior of ``targets`` (n, m) at ``inputs`` (n, d); float64 inside."""
+    check_kernel(kernel)
+    x, y = _check_data(inputs, targets)
+    with jax.enable_x64(True):
+        return to_numpy(_exact(jnp.asarray(x), jnp.asarray(y), jax.tree.map(jnp.asarray, hp), kernel))
+
+
+def _exact(x, y, hp, kernel):
+    def one(ls, s2, noise, yi):
+        k = kernel_matrix(x, x, ls, s2, kernel) + noise * jnp.eye(x.shape[0])
+        k_inv = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(k), True), jnp.eye(x.shape[0]))
+        return k_inv @ yi, k_inv
+
+    weights, var_matrix = jax.vmap(one)(hp.length_scales, hp.signal_var, hp.noise_var, y.T)
+    return GPPosterior(x, weights, var_matrix, hp, kernel)
+
+
+def fitc_posterior(inputs, targets, hp: GPHyperparams, inducing, kernel: str = "rbf") -> GPPosterior:
+    """The FITC sparse posterior on the inducing inputs ``inducing`` (M, d); float64 inside."""
+    check_kernel(kernel)
+    x, y = _check_data(inputs, targets)
+    z = np.asarray(inducing, dtype=float)
+    if z.ndim != 2 or z.shape[1] != x.shape[1]:
+        raise ValueError(f"inducing: expected (M, {x.shape[1]}) points, got shape {z.shape}")
+    with jax.enable_x64(True):
+        return to_numpy(_fitc(jnp.asarray(x), jnp.asarray(y), jnp.asarray(z), jax.tree.map(jnp.asarray, hp), kernel))
+
+
+def _fitc(x, y, z, hp, kernel):
+    num_inducing = z.shape[0]
+
+    def one(ls, s2, noise, yi):
+        kzz = kernel_matrix(z, z, ls, s2, kernel) + _JITTER * s2 * jnp.eye(num_inducing)
+        kxz = kernel_matrix(x, z, ls, s2, kernel)
+        kzz_chol = jnp.linalg.cholesky(kzz)
+        kzz_inv = jax.scipy.linalg.cho_solve((kzz_chol, True), jnp.eye(num_inducing))
+        q_diag = jnp.sum((kxz @ kzz_inv) * kxz, axis=1)
+        gamma = jnp.maximum(s2 - q_diag, 0.0) + noise  # k(x, x) = s2 for both stationary kernels
+        sigma = kzz + (kxz / gamma[:, None]).T @ kxz
+        sigma_inv = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(sigma), True), jnp.eye(num_inducing))
+        weights = sigma_inv @ (kxz.T @ (yi / gamma))
+        return weights, kzz_inv - sigma_inv
+
+    weights, var_matrix = jax.vmap(one)(hp.length_scales, hp.signal_var, hp.noise_var, y.T)
+    return GPPosterior(z, weights, var_matrix, hp, kernel)
+
+
+def select_inducing(inputs, num_inducing: int, key, iterations: int = 20) -> np.ndarray:
+    """Indices (num_inducing,) of training inputs used as inducing points.
+
+    The rule: Lloyd's k-means on the inputs (each dimension divided by its standard deviation), started from
+    ``num_inducing`` distinct data points drawn with ``key``, run ``iterations`` times; each centroid is then
+    snapped to its nearest unused training input.
+    """
+    x = np.asarray(inputs, dtype=float)
+    n = x.shape[0]
+    if not isinstance(num_inducing, int | np.integer) or not 1 <= num_inducing <= n:
+        raise ValueError(
+            f"num_inducing: must be an integer from 1 to the number of data points ({n}), got {num_inducing!r}"
+        )
+    scale = x.std(axis=0)
+    xs = x / np.where(scale > 0, scale, 1.0)
+    centroids = xs[np.asarray(jax.random.choice(key, n, (num_inducing,), replace=False))]
+    for _ in range(iterations):
+        labels = np.argmin(((xs[:, None, :] - centroids[None]) ** 2).sum(-1), axis=1)
+        for j in range(num_inducing):
+            members = xs[labels == j]
+            if len(members):
+                centroids[j] = members.mean(axis=0)
+    chosen: list[int] = []
+    distances = ((centroids[:, None, :] - xs[None]) ** 2).sum(-1)  # (M, n)
+    for j in range(num_inducing):
+        row = distances[j].copy()
+        row[chosen] = np.inf
+        chosen.append(int(np.argmin(row)))
+    return np.asarray(chosen)
+
+
+# ------------------------------------------------------------------------------------------ hyperparameters
+def negative_log_marginal_likelihood(x, y, hp: GPHyperparams, kernel: str = "rbf"):
+    """Sum over outputs of ``-log p(y_i | X, θ_i)``; x (n, d), y (n, m). JAX, differentiable in ``hp``."""
+    n = x.shape[0]
+
+    def one(ls, s2, noise, yi):
+        k = kernel_matrix(x, x, ls, s2, kernel) + noise * jnp.eye(n)
+        chol = jnp.linalg.cholesky(k)
+        alpha = jax.scipy.linalg.cho_solve((chol, True), yi)
+        return 0.5 * yi @ alpha + jnp.sum(jnp.log(jnp.diag(chol))) + 0.5 * n * jnp.log(2.0 * jnp.pi)
+
+    return jnp.sum(jax.vmap(one)(hp.length_scales, hp.signal_var, hp.noise_var, y.T))
+
+
+def initial_hyperparams(inputs, targets) -> GPHyperparams:
+    """A data-scaled start: length scales = the inputs' standard deviations, signal variance = the targets'
+    variance, noise variance = 1% of it."""
+    x, y = _check_data(inputs, targets)
+    spread = np.where(x.std(axis=0) > 0, x.std(axis=0), 1.0)
+    target_var = np.maximum(y.var(axis=0), 1e-12)
+    return hyperparams(np.tile(spread, (y.shape[1], 1)), target_var, 0.01 * target_var)
+
+
+def fit_hyperparams(
+    inputs,
+    targets,
+    kernel: str = "rbf",
+    init: GPHyperparams | None = None,
+    iterations: int = 100,
+    min_noise_var: float = 1e-8,
+) -> tuple[GPHyperparams, dict]:
+    """Maximise the log marginal likelihood of each output's GP with optax L-BFGS (float64).
+
+    Optimises the logs of the hyperparameters (so they stay positive); the noise variance never falls below
+    ``min_noise_var``. Runs ``iterations`` L-BFGS steps in one compiled ``lax.scan``.
+
+    Returns:
+        ``(hyperparams, info)``; ``info`` holds ``nll_initial`` and ``nll_final`` (the summed negative log
+        marginal likelihood, nats).
+    """
+    check_kernel(kernel)
+    x, y = _check_data(inputs, targets)
+    if not isinstance(iterations, int) or iterations < 1:
+        raise ValueError(f"iterations: must be a positive integer, got {iterations!r}")
+    init = initial_hyperparams(x, y) if init is None else init
+    with jax.enable_x64(True):
+        xj, yj = jnp.asarray(x), jnp.asarray(y)
+        log0 = jax.tree.map(lambda v: jnp.log(jnp.asarray(v, jnp.float64)), init)
+
+        def unpack(log_hp):
+            return GPHyperparams(
+                jnp.exp(log_hp.length_scales), jnp.exp(log_hp.signal_var), jnp.exp(log_hp.noise_var) + min_noise_var
+            )
+
+        def loss(log_hp):
+            return negative_log_marginal_likelihood(xj, yj, unpack(log_hp), kernel)
+
+        solver = optax.lbfgs()
+        value_and_grad = optax.value_and_grad_from_state(loss)
+
+        @jax.jit
+        def run(log_hp):
+            def step(carry, _):
+                params, state = carry
+                value, grad = value_and_grad(params, state=state)
+                updates, state = solver.update(grad, state, params, value=value, grad=grad, value_fn=loss)
+                return (optax.apply_updates(params, updates), state), value
+
+            (final, _), _ = jax.lax.scan(step, (log_hp, solver.init(log_hp)), None, iterations)
+            return final, loss(log_hp), loss(final)
+
+        final, nll0, nll1 = run(log0)
+        fitted = jax.tree.map(np.asarray, unpack(final))
+    if not np.isfinite(float(nll1)) or float(nll1) > float(nll0):
+        fitted, nll1 = jax.tree.map(np.asarray, init), nll0  # never return worse than the start
+    return fitted, {"nll_initial": float(nll0), "nll_final": float(nll1)}
+
+
+def hyperparams_dict(hp: GPHyperparams) -> Mapping[str, list]:
+    """JSON-ready hyperparameters."""
+    return {name: np.asarray(getattr(hp, name)).tolist() for name in ("length_scales", "signal_var", "noise_var")}

@@ -1,0 +1,139 @@
+"""Gaussian-process regression: closed forms, JAX = CasADi, FITC = exact on the data, hyperparameter recovery."""
+
+from __future__ import annotations
+
+import casadi as cs
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from algorithms import gp
+
+
+def _closed_form(x, y, z, ls, s2, noise, kernel="rbf"):
+    """Textbook GP posterior (Rasmussen & Williams eq. 2.25-2.26) with numpy, one output."""
+
+    def k(a, b):
+        d2 = (((a[:, None, :] - b[None]) / ls) ** 2).sum(-1)
+        if kernel == "rbf":
+            return s2 * np.exp(-0.5 * d2)
+        r = np.sqrt(5.0 * d2)
+        return s2 * (1 + r + r * r / 3) * np.exp(-r)
+
+    big_k = k(x, x) + noise * np.eye(len(x))
+    ks = k(z, x)
+    mean = ks @ np.linalg.solve(big_k, y)
+    var = np.diag(k(z, z)) - np.einsum("ij,ji->i", ks, np.linalg.solve(big_k, ks.T))
+    return mean, var
+
+
+def test_two_point_posterior_by_hand():
+    """Two data points at 0 and 1 (rbf, l = 1, s2 = 1, noise 0.1): the mean at 0.5 worked out by hand."""
+    hp = gp.hyperparams([[1.0]], [1.0], [0.1])
+    post = gp.exact_posterior([[0.0], [1.0]], [[1.0], [-1.0]], hp)
+    with jax.enable_x64(True):
+        mean, var = gp.predict(jax.tree.map(jnp.asarray, post), jnp.array([0.5]))
+    # k(0.5, 0) = k(0.5, 1) = e^-0.125; the targets are antisymmetric about 0.5, so the mean there is exactly 0.
+    assert abs(float(mean[0])) < 1e-12
+    c = np.exp(-0.5)  # k(0, 1)
+    kvec = np.exp(-0.125) * np.ones(2)
+    expected_var = 1.0 - kvec @ np.linalg.solve(np.array([[1.1, c], [c, 1.1]]), kvec)
+    assert float(var[0]) == pytest.approx(expected_var, abs=1e-12)
+    assert float(var[0]) == pytest.approx(1.0 - 2 * np.exp(-0.25) / (1.1 + c), abs=1e-12)
+
+
+@pytest.mark.parametrize("kernel", gp.KERNELS)
+def test_exact_posterior_equals_closed_form(kernel):
+    rng = np.random.default_rng(0)
+    x, z = rng.uniform(-2, 2, (30, 3)), rng.uniform(-2, 2, (50, 3))
+    y = np.stack([np.sin(x[:, 0]) + x[:, 1], np.cos(x.sum(1))], axis=1)
+    hp = gp.hyperparams([[0.7, 1.1, 2.0], [1.5, 0.4, 0.9]], [1.3, 0.6], [0.01, 0.05])
+    post = gp.exact_posterior(x, y, hp, kernel)
+    with jax.enable_x64(True):
+        mean, var = gp.predict_batch(jax.tree.map(jnp.asarray, post), jnp.asarray(z))
+    for i in range(2):
+        ls, s2, noise = np.asarray(hp.length_scales[i]), float(hp.signal_var[i]), float(hp.noise_var[i])
+        m_ref, v_ref = _closed_form(x, y[:, i], z, ls, s2, noise, kernel)
+        np.testing.assert_allclose(np.asarray(mean[:, i]), m_ref, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(var[:, i]), v_ref, atol=1e-6)
+
+
+def test_fitc_on_all_data_points_is_exact():
+    """FITC with the training inputs as inducing points is the exact posterior (Snelson & Ghahramani)."""
+    rng = np.random.default_rng(1)
+    x = rng.uniform(-1, 1, (25, 2))
+    y = np.sin(3 * x[:, :1]) * x[:, 1:]
+    hp = gp.hyperparams([[0.5, 0.8]], [0.4], [1e-3])
+    exact, fitc = gp.exact_posterior(x, y, hp), gp.fitc_posterior(x, y, hp, x)
+    z = rng.uniform(-1, 1, (40, 2))
+    with jax.enable_x64(True):
+        m1, v1 = gp.predict_batch(jax.tree.map(jnp.asarray, exact), jnp.asarray(z))
+        m2, v2 = gp.predict_batch(jax.tree.map(jnp.asarray, fitc), jnp.asarray(z))
+    np.testing.assert_allclose(np.asarray(m2), np.asarray(m1), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(v2), np.asarray(v1), atol=1e-6)
+
+
+def test_fitc_with_few_inducing_points_approximates_the_mean():
+    rng = np.random.default_rng(2)
+    x = rng.uniform(-3, 3, (400, 1))
+    y = np.sin(x) + 0.05 * rng.standard_normal(x.shape)
+    hp = gp.hyperparams([[1.0]], [1.0], [0.0025])
+    idx = gp.select_inducing(x, 20, jax.random.key(0))
+    assert len(set(idx.tolist())) == 20
+    fitc = gp.fitc_posterior(x, y, hp, x[idx])
+    z = np.linspace(-2.5, 2.5, 50)[:, None]
+    with jax.enable_x64(True):
+        mean, _ = gp.predict_batch(jax.tree.map(jnp.asarray, fitc), jnp.asarray(z))
+    np.testing.assert_allclose(np.asarray(mean[:, 0]), np.sin(z[:, 0]), atol=0.05)
+
+
+@pytest.mark.parametrize("kind", ["exact", "fitc"])
+@pytest.mark.parametrize("kernel", gp.KERNELS)
+def test_jax_and_casadi_agree_at_random_points(kind, kernel):
+    rng = np.random.default_rng(3)
+    x = rng.uniform(-1, 1, (40, 5))
+    y = np.stack([np.sin(2 * x[:, 0]), x[:, 1] * x[:, 2], np.cos(x[:, 3] - x[:, 4])], axis=1)
+    hp = gp.hyperparams(rng.uniform(0.3, 2.0, (3, 5)), [0.5, 1.0, 2.0], [1e-3, 1e-2, 1e-4])
+    post = gp.exact_posterior(x, y, hp, kernel) if kind == "exact" else gp.fitc_posterior(x, y, hp, x[:12], kernel)
+    function = gp.casadi_function(post)
+    z = rng.uniform(-1.5, 1.5, (200, 5))
+    with jax.enable_x64(True):
+        mean, var = gp.predict_batch(jax.tree.map(jnp.asarray, post), jnp.asarray(z))
+    cs_mean, cs_var = function.map(len(z))(z.T)
+    np.testing.assert_allclose(np.asarray(cs_mean).T, np.asarray(mean), atol=1e-6, rtol=0)
+    np.testing.assert_allclose(np.asarray(cs_var).T, np.asarray(var), atol=1e-6, rtol=0)
+    # The CasADi expression is differentiable for the MPC: its Jacobian equals JAX's.
+    zs = cs.SX.sym("z", 5)
+    jac = cs.Function("j", [zs], [cs.jacobian(function(zs)[0], zs)])
+    with jax.enable_x64(True):
+        jax_jac = jax.jacfwd(lambda q: gp.predict(jax.tree.map(jnp.asarray, post), q)[0])(jnp.asarray(z[0]))
+    np.testing.assert_allclose(np.asarray(jac(z[0])), np.asarray(jax_jac), atol=1e-6)
+
+
+def test_fit_recovers_the_length_scales_of_data_drawn_from_a_known_gp():
+    """Samples of a GP with ARD length scales (0.5, 2.0) m: the fit recovers both within 25%."""
+    rng = np.random.default_rng(4)
+    x = rng.uniform(-3, 3, (200, 2))
+    true_ls, s2, noise = np.array([0.5, 2.0]), 1.0, 1e-2
+    d2 = (((x[:, None, :] - x[None]) / true_ls) ** 2).sum(-1)
+    cov = s2 * np.exp(-0.5 * d2) + noise * np.eye(len(x))
+    y = np.linalg.cholesky(cov) @ rng.standard_normal((len(x), 3))  # three independent draws, one per output
+    hp, info = gp.fit_hyperparams(x, y, iterations=30)
+    assert info["nll_final"] < info["nll_initial"]
+    ls = np.asarray(hp.length_scales)
+    np.testing.assert_allclose(ls, np.tile(true_ls, (3, 1)), rtol=0.25)
+    np.testing.assert_allclose(np.asarray(hp.noise_var), noise, rtol=0.5)
+
+
+def test_bad_input_names_the_field():
+    with pytest.raises(ValueError, match=r"hyperparams.length_scales: must be positive"):
+        gp.hyperparams([[1.0, -0.1]], [1.0], [0.1])
+    with pytest.raises(ValueError, match=r"hyperparams.noise_var: must be positive"):
+        gp.hyperparams([[1.0]], [1.0], [0.0])
+    with pytest.raises(ValueError, match=r"num_inducing: must be an integer from 1 to the number of data points \(5\)"):
+        gp.select_inducing(np.zeros((5, 2)), 6, jax.random.key(0))
+    with pytest.raises(ValueError, match=r"kernel: unknown value 'matern'; allowed values are rbf, matern52"):
+        gp.exact_posterior(np.zeros((3, 1)), np.zeros((3, 1)), gp.hyperparams([[1.0]], [1.0], [0.1]), "matern")
+    with pytest.raises(ValueError, match=r"data: expected inputs \(n, d\) and targets \(n, m\)"):
+        gp.fit_hyperparams(np.zeros((4, 2)), np.zeros((3, 1)))
