@@ -41,7 +41,7 @@ KERNELS = ("rbf", "matern52")
 _SQRT5 = math.sqrt(5.0)
 # Added to the scaled squared distance inside the Matérn kernel's square root: its derivative is infinite at 0.
 _MATERN_EPS = 1e-12
-_JITTER = 1e-8  # relative diagonal jitter of K_ZZ (inducing points can be close)
+_JITTER = 1e-6  # relative diagonal jitter of K_ZZ (inducing points can be close)
 
 
 @struct.dataclass
@@ -156,9 +156,16 @@ def predict(posterior: GPPosterior, z, xp=jax_backend):
     return xp.stack(means), xp.stack(variances)
 
 
-def predict_batch(posterior: GPPosterior, z):
-    """``predict`` over a batch ``z`` (N, d) -> mean (N, m), var (N, m); JAX."""
-    return jax.vmap(lambda zi: predict(posterior, zi, jax_backend))(z)
+def predict_batch(posterior: GPPosterior, z) -> tuple[np.ndarray, np.ndarray]:
+    """``predict`` over a batch ``z`` (N, d) on the host, in float64: mean (N, m), var (N, m) numpy arrays.
+
+    The variance ``s - kᵀ V k`` cancels badly in float32 when the data pins the function down (it can come out
+    negative); inside your own jitted code, call ``predict`` under ``jax.enable_x64(True)`` for the same accuracy.
+    """
+    with jax.enable_x64(True):
+        posterior64 = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), posterior)
+        mean, var = jax.vmap(lambda zi: predict(posterior64, zi, jax_backend))(jnp.asarray(z, jnp.float64))
+        return np.asarray(mean), np.asarray(var)
 
 
 def to_numpy(posterior: GPPosterior) -> GPPosterior:
@@ -207,22 +214,30 @@ def _exact(x, y, hp, kernel):
     return GPPosterior(x, weights, var_matrix, hp, kernel)
 
 
-def fitc_posterior(inputs, targets, hp: GPHyperparams, inducing, kernel: str = "rbf") -> GPPosterior:
-    """The FITC sparse posterior on the inducing inputs ``inducing`` (M, d); float64 inside."""
+def fitc_posterior(
+    inputs, targets, hp: GPHyperparams, inducing, kernel: str = "rbf", jitter: float = _JITTER
+) -> GPPosterior:
+    """The FITC sparse posterior on the inducing inputs ``inducing`` (M, d); float64 inside.
+
+    ``jitter`` times the signal variance is added to the diagonal of ``K_ZZ``: inducing points can be close
+    together relative to long length scales, and ``K_ZZ`` is then nearly singular.
+    """
     check_kernel(kernel)
     x, y = _check_data(inputs, targets)
     z = np.asarray(inducing, dtype=float)
     if z.ndim != 2 or z.shape[1] != x.shape[1]:
         raise ValueError(f"inducing: expected (M, {x.shape[1]}) points, got shape {z.shape}")
     with jax.enable_x64(True):
-        return to_numpy(_fitc(jnp.asarray(x), jnp.asarray(y), jnp.asarray(z), jax.tree.map(jnp.asarray, hp), kernel))
+        return to_numpy(
+            _fitc(jnp.asarray(x), jnp.asarray(y), jnp.asarray(z), jax.tree.map(jnp.asarray, hp), kernel, jitter)
+        )
 
 
-def _fitc(x, y, z, hp, kernel):
+def _fitc(x, y, z, hp, kernel, jitter):
     num_inducing = z.shape[0]
 
     def one(ls, s2, noise, yi):
-        kzz = kernel_matrix(z, z, ls, s2, kernel) + _JITTER * s2 * jnp.eye(num_inducing)
+        kzz = kernel_matrix(z, z, ls, s2, kernel) + jitter * s2 * jnp.eye(num_inducing)
         kxz = kernel_matrix(x, z, ls, s2, kernel)
         kzz_chol = jnp.linalg.cholesky(kzz)
         kzz_inv = jax.scipy.linalg.cho_solve((kzz_chol, True), jnp.eye(num_inducing))
@@ -282,13 +297,12 @@ def negative_log_marginal_likelihood(x, y, hp: GPHyperparams, kernel: str = "rbf
     return jnp.sum(jax.vmap(one)(hp.length_scales, hp.signal_var, hp.noise_var, y.T))
 
 
-def initial_hyperparams(inputs, targets) -> GPHyperparams:
-    """A data-scaled start: length scales = the inputs' standard deviations, signal variance = the targets'
-    variance, noise variance = 1% of it."""
-    x, y = _check_data(inputs, targets)
-    spread = np.where(x.std(axis=0) > 0, x.std(axis=0), 1.0)
-    target_var = np.maximum(y.var(axis=0), 1e-12)
-    return hyperparams(np.tile(spread, (y.shape[1], 1)), target_var, 0.01 * target_var)
+# Bounds of the fit, in standardised units (inputs divided by their standard deviation, targets by theirs): they
+# keep the kernel matrix well conditioned when the data is explained by a nearly linear function (the model error
+# of a wrong prior often is), which would otherwise drive length scales and signal variance to infinity.
+LENGTH_SCALE_BOUNDS = (1e-2, 1e1)
+SIGNAL_VAR_BOUNDS = (1e-4, 1e3)
+NOISE_VAR_BOUNDS = (1e-4, 1e1)
 
 
 def fit_hyperparams(
@@ -297,30 +311,40 @@ def fit_hyperparams(
     kernel: str = "rbf",
     init: GPHyperparams | None = None,
     iterations: int = 100,
-    min_noise_var: float = 1e-8,
 ) -> tuple[GPHyperparams, dict]:
     """Maximise the log marginal likelihood of each output's GP with optax L-BFGS (float64).
 
-    Optimises the logs of the hyperparameters (so they stay positive); the noise variance never falls below
-    ``min_noise_var``. Runs ``iterations`` L-BFGS steps in one compiled ``lax.scan``.
+    The fit runs on standardised data (each input and target divided by its standard deviation; the GP's mean
+    stays zero) over the logs of the hyperparameters, clipped to ``LENGTH_SCALE_BOUNDS``, ``SIGNAL_VAR_BOUNDS``
+    and ``NOISE_VAR_BOUNDS`` (standardised units), then maps them back to the data's units exactly (a stationary
+    kernel on scaled inputs is the same kernel with scaled length scales). ``iterations`` L-BFGS steps run in one
+    compiled ``lax.scan``.
 
     Returns:
-        ``(hyperparams, info)``; ``info`` holds ``nll_initial`` and ``nll_final`` (the summed negative log
-        marginal likelihood, nats).
+        ``(hyperparams, info)`` in the data's units; ``info`` holds ``nll_initial`` and ``nll_final`` (the summed
+        negative log marginal likelihood of the standardised data, nats).
     """
     check_kernel(kernel)
     x, y = _check_data(inputs, targets)
     if not isinstance(iterations, int) or iterations < 1:
         raise ValueError(f"iterations: must be a positive integer, got {iterations!r}")
-    init = initial_hyperparams(x, y) if init is None else init
+    x_scale = np.where(x.std(axis=0) > 0, x.std(axis=0), 1.0)
+    y_scale = np.where(y.std(axis=0) > 0, y.std(axis=0), 1.0)
+    if init is None:
+        start = hyperparams(np.ones((y.shape[1], x.shape[1])), np.ones(y.shape[1]), 0.01 * np.ones(y.shape[1]))
+    else:
+        start = hyperparams(
+            np.asarray(init.length_scales) / x_scale, np.asarray(init.signal_var) / y_scale**2,
+            np.asarray(init.noise_var) / y_scale**2,
+        )  # fmt: skip
+    bounds = (LENGTH_SCALE_BOUNDS, SIGNAL_VAR_BOUNDS, NOISE_VAR_BOUNDS)
     with jax.enable_x64(True):
-        xj, yj = jnp.asarray(x), jnp.asarray(y)
-        log0 = jax.tree.map(lambda v: jnp.log(jnp.asarray(v, jnp.float64)), init)
+        xj, yj = jnp.asarray(x / x_scale), jnp.asarray(y / y_scale)
+        log0 = jax.tree.map(lambda v: jnp.log(jnp.asarray(v, jnp.float64)), start)
 
         def unpack(log_hp):
-            return GPHyperparams(
-                jnp.exp(log_hp.length_scales), jnp.exp(log_hp.signal_var), jnp.exp(log_hp.noise_var) + min_noise_var
-            )
+            values = (log_hp.length_scales, log_hp.signal_var, log_hp.noise_var)
+            return GPHyperparams(*(jnp.exp(jnp.clip(v, *np.log(b))) for v, b in zip(values, bounds, strict=True)))
 
         def loss(log_hp):
             return negative_log_marginal_likelihood(xj, yj, unpack(log_hp), kernel)
@@ -337,13 +361,17 @@ def fit_hyperparams(
                 return (optax.apply_updates(params, updates), state), value
 
             (final, _), _ = jax.lax.scan(step, (log_hp, solver.init(log_hp)), None, iterations)
-            return final, loss(log_hp), loss(final)
+            return unpack(final), loss(log_hp), loss(final)
 
-        final, nll0, nll1 = run(log0)
-        fitted = jax.tree.map(np.asarray, unpack(final))
-    if not np.isfinite(float(nll1)) or float(nll1) > float(nll0):
-        fitted, nll1 = jax.tree.map(np.asarray, init), nll0  # never return worse than the start
-    return fitted, {"nll_initial": float(nll0), "nll_final": float(nll1)}
+        fitted, nll0, nll1 = run(log0)
+        fitted = jax.tree.map(np.asarray, fitted)
+    if not np.isfinite(float(nll1)) or float(nll1) > float(nll0):  # never return worse than the start
+        fitted, nll1 = start, nll0
+    hyper = hyperparams(
+        np.asarray(fitted.length_scales) * x_scale, np.asarray(fitted.signal_var) * y_scale**2,
+        np.asarray(fitted.noise_var) * y_scale**2,
+    )  # fmt: skip
+    return hyper, {"nll_initial": float(nll0), "nll_final": float(nll1)}
 
 
 def hyperparams_dict(hp: GPHyperparams) -> Mapping[str, list]:

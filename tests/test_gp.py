@@ -65,7 +65,7 @@ def test_fitc_on_all_data_points_is_exact():
     x = rng.uniform(-1, 1, (25, 2))
     y = np.sin(3 * x[:, :1]) * x[:, 1:]
     hp = gp.hyperparams([[0.5, 0.8]], [0.4], [1e-3])
-    exact, fitc = gp.exact_posterior(x, y, hp), gp.fitc_posterior(x, y, hp, x)
+    exact, fitc = gp.exact_posterior(x, y, hp), gp.fitc_posterior(x, y, hp, x, jitter=1e-12)
     z = rng.uniform(-1, 1, (40, 2))
     with jax.enable_x64(True):
         m1, v1 = gp.predict_batch(jax.tree.map(jnp.asarray, exact), jnp.asarray(z))

@@ -32,15 +32,17 @@ def test_covariance_propagation_matches_monte_carlo():
     np.testing.assert_allclose(np.cov(dx.T), sigmas[-1], rtol=0.03, atol=2e-4)
 
 
-def test_box_row_offset_is_z_times_the_marginal_std_and_input_rows_see_the_feedback():
-    sigma = np.array([[[0.04, 0.01], [0.01, 0.09]]])
+def test_state_rows_use_the_next_covariance_and_input_rows_the_feedback_of_the_current_one():
+    sigma_now = np.array([[0.04, 0.01], [0.01, 0.09]])
+    sigma_next = np.array([[0.25, 0.0], [0.0, 0.16]])
     K = np.array([[2.0, 1.0]])
     z_q = tightening.quantile(0.95, 2)
-    rows_x = np.array([[1.0, 0.0], [0.0, -1.0], [0.0, 0.0]])
-    rows_u = np.array([[0.0], [0.0], [1.0]])
-    out = tightening.offsets(rows_x, rows_u, sigma, K, z_q)
-    # std of x0 is 0.2, of x1 0.3; the input deviation -K δx has variance K Σ Kᵀ = 4*0.04 + 2*2*0.01 + 0.09.
-    np.testing.assert_allclose(out[0], z_q * np.array([0.2, 0.3, np.sqrt(0.16 + 0.04 + 0.09)]), rtol=1e-12)
+    rows_x = np.array([[1.0, 0.0], [0.0, -1.0], [0.0, 0.0], [1.0, 0.0]])
+    rows_u = np.array([[0.0], [0.0], [1.0], [1.0]])
+    out = tightening.margins(rows_x, rows_u, np.stack([sigma_now, sigma_next]), K, z_q)
+    # x_{i+1} stds 0.5 and 0.4; the input deviation -K δx_i has variance K Σ_i Kᵀ = 4*0.04 + 2*2*0.01 + 0.09.
+    input_std = np.sqrt(0.16 + 0.04 + 0.09)
+    np.testing.assert_allclose(out[0], z_q * np.array([0.5, 0.4, input_std, 0.5 + input_std]), rtol=1e-12)
 
 
 def test_bad_probability_is_named():

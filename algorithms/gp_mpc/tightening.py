@@ -9,14 +9,16 @@ LQR gain of the prior's linearisation, as in the original suite). With the plan'
 
 (Hewing et al. 2020, eq. 22, the "mean equivalence" approximation evaluated along the previous plan).
 
-A linear constraint row ``a_x ᵀ x + a_u ᵀ u <= b`` holds with probability ``prob`` (jointly over the ``nx``
-dimensions, by a two-sided Bonferroni bound as in the original) when the nominal plan satisfies it with the margin
+A linear constraint row ``a_x ᵀ x_{i+1} + a_u ᵀ u_i <= b`` (the pair the env checks after step ``i``) holds with
+probability ``prob`` (jointly over the ``nx`` dimensions, by a two-sided Bonferroni bound as in the original) when
+the nominal plan satisfies it with the margin
 
-    offset_i = z_q · sqrt(cᵀ Σ_zi c),   c = (a_x, a_u),   Σ_z = [[Σ, -Σ Kᵀ], [-K Σ, K Σ Kᵀ]],
-    z_q = Φ⁻¹(1 - (1 - prob) / (2 nx)).
+    margin_i = z_q · ( sqrt(a_xᵀ Σ_{i+1} a_x) + sqrt(a_uᵀ K Σ_i Kᵀ a_u) ),     z_q = Φ⁻¹(1 - (1 - prob) / (2 nx)).
 
-The original multiplies ``|a|`` by the marginal standard deviations, which ignores correlations; the two agree for
-rows on a single entry (box constraints) and ``sqrt(cᵀ Σ c)`` is the exact standard deviation otherwise.
+For a row on states only or inputs only this is z_q times the row's exact standard deviation; for a mixed row the
+sum of the two standard deviations bounds the combined one from above (Cauchy-Schwarz), so the margin is safe.
+The original multiplies ``|a|`` by the marginal standard deviations, which is the same for rows on a single
+entry (box constraints).
 """
 
 from __future__ import annotations
@@ -56,18 +58,20 @@ def propagate_covariance(A, B, K, model_var, sigma0) -> np.ndarray:
     return np.stack(sigmas)
 
 
-def offsets(rows_x, rows_u, sigmas, K, z_q: float) -> np.ndarray:
-    """Tightening of every linear row at every stage.
+def margins(rows_x, rows_u, sigmas, K, z_q: float) -> np.ndarray:
+    """Tightening of every linear row at every stage of a horizon.
 
     Args:
-        rows_x: (ng, nx) and rows_u: (ng, nu): the rows ``a_x``, ``a_u`` of ``a_x x + a_u u <= b``.
-        sigmas: (S, nx, nx) state covariances of the stages to tighten.
+        rows_x: (ng, nx) and rows_u: (ng, nu): the rows ``a_x``, ``a_u`` of ``a_x x_{i+1} + a_u u_i <= b``.
+        sigmas: (H + 1, nx, nx) state covariances ``Σ_0 .. Σ_H`` from ``propagate_covariance``.
         K: (nu, nx) the ancillary gain. z_q: the quantile from ``quantile``.
 
     Returns:
-        (S, ng) margins ``z_q sqrt(cᵀ Σ_z c)`` to subtract from ``b`` (or add to ``g``).
+        (H, ng) margins to subtract from ``b`` (or add to ``g``) at stages ``0 .. H-1``.
     """
     rows_x, rows_u, K = np.asarray(rows_x, float), np.asarray(rows_u, float), np.asarray(K, float)
-    effective = rows_x - rows_u @ K  # cᵀ Σ_z c = (a_x - Kᵀ a_u)ᵀ Σ (a_x - Kᵀ a_u)
-    variance = np.einsum("gi,sij,gj->sg", effective, np.asarray(sigmas, float), effective)
-    return z_q * np.sqrt(np.maximum(variance, 0.0))
+    sigmas = np.asarray(sigmas, float)
+    state_var = np.einsum("gi,sij,gj->sg", rows_x, sigmas[1:], rows_x)
+    input_rows = rows_u @ K  # a_uᵀ K
+    input_var = np.einsum("gi,sij,gj->sg", input_rows, sigmas[:-1], input_rows)
+    return z_q * (np.sqrt(np.maximum(state_var, 0.0)) + np.sqrt(np.maximum(input_var, 0.0)))
