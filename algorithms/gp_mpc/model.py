@@ -75,12 +75,21 @@ class PlanUncertainty:
     Args:
         model: ``learned_model(...)``. posterior: the GP (``None``: no model uncertainty). K: (nu, nx) ancillary
             gain. prob: chance level of each constraint. sigma0: (nx, nx) initial-state covariance.
+        constraints: optional CasADi ``Function`` ``g(x, u) -> (ng,)`` (``SymbolicModel.g``); its Jacobians at
+            ``(x_{i+1}, u_i)`` give each stage's rows for ``plan_margins`` (exact for linear constraints, the
+            linearisation for quadratic ones).
     """
 
-    def __init__(self, model: cs.Function, posterior: gp.GPPosterior | None, K, prob: float, sigma0):
+    def __init__(self, model: cs.Function, posterior: gp.GPPosterior | None, K, prob: float, sigma0,
+                 constraints: cs.Function | None = None):  # fmt: skip
         nx, nu = model.size1_in(0), model.size1_in(1)
         x, u = cs.SX.sym("x", nx), cs.SX.sym("u", nu)
         self.jacobians = cs.Function("AB", [x, u], [cs.jacobian(model(x, u), x), cs.jacobian(model(x, u), u)])
+        self.constraint_jacobians = None
+        if constraints is not None and constraints.size1_out(0):
+            g = constraints(x, u)
+            self.constraint_jacobians = cs.Function("G", [x, u], [cs.jacobian(g, x), cs.jacobian(g, u)])
+            self.ng = int(constraints.size1_out(0))
         self.posterior = None if posterior is None else gp.to_numpy(posterior)
         self.variance = None if posterior is None else gp.casadi_function(self.posterior).map
         self.K = np.asarray(K, float)
@@ -106,3 +115,12 @@ class PlanUncertainty:
     def margins(self, x_plan, u_plan, rows_x, rows_u) -> np.ndarray:
         """(H, ng) margins of the rows ``a_x x_{i+1} + a_u u_i <= b`` at each stage ``i`` of the plan."""
         return tightening.margins(rows_x, rows_u, self.covariances(x_plan, u_plan), self.K, self.z_q)
+
+    def plan_margins(self, x_plan, u_plan) -> np.ndarray:
+        """(H, ng) margins of the ``constraints`` given at construction, rows from their Jacobians along the plan."""
+        x_plan, u_plan = np.asarray(x_plan, float), np.asarray(u_plan, float)
+        H = len(u_plan)
+        gx, gu = self.constraint_jacobians.map(H)(x_plan[1:].T, u_plan.T)
+        rows_x = np.asarray(gx).reshape(self.ng, self.nx, H, order="F").transpose(2, 0, 1)
+        rows_u = np.asarray(gu).reshape(self.ng, self.nu, H, order="F").transpose(2, 0, 1)
+        return self.margins(x_plan, u_plan, rows_x, rows_u)

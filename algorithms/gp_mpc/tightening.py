@@ -62,16 +62,19 @@ def margins(rows_x, rows_u, sigmas, K, z_q: float) -> np.ndarray:
     """Tightening of every linear row at every stage of a horizon.
 
     Args:
-        rows_x: (ng, nx) and rows_u: (ng, nu): the rows ``a_x``, ``a_u`` of ``a_x x_{i+1} + a_u u_i <= b``.
+        rows_x: (ng, nx) and rows_u: (ng, nu): the rows ``a_x``, ``a_u`` of ``a_x x_{i+1} + a_u u_i <= b``; or
+            (H, ng, nx) and (H, ng, nu), one set per stage (the Jacobians of nonlinear constraints along a plan).
         sigmas: (H + 1, nx, nx) state covariances ``Σ_0 .. Σ_H`` from ``propagate_covariance``.
         K: (nu, nx) the ancillary gain. z_q: the quantile from ``quantile``.
 
     Returns:
         (H, ng) margins to subtract from ``b`` (or add to ``g``) at stages ``0 .. H-1``.
     """
-    rows_x, rows_u, K = np.asarray(rows_x, float), np.asarray(rows_u, float), np.asarray(K, float)
-    sigmas = np.asarray(sigmas, float)
-    state_var = np.einsum("gi,sij,gj->sg", rows_x, sigmas[1:], rows_x)
-    input_rows = rows_u @ K  # a_uᵀ K
-    input_var = np.einsum("gi,sij,gj->sg", input_rows, sigmas[:-1], input_rows)
+    sigmas, K = np.asarray(sigmas, float), np.asarray(K, float)
+    H = sigmas.shape[0] - 1
+    rows_x = np.broadcast_to(np.asarray(rows_x, float), (H, *np.shape(rows_x)[-2:]))
+    rows_u = np.broadcast_to(np.asarray(rows_u, float), (H, *np.shape(rows_u)[-2:]))
+    state_var = np.einsum("sgi,sij,sgj->sg", rows_x, sigmas[1:], rows_x)
+    input_rows = rows_u @ K  # a_uᵀ K, per stage
+    input_var = np.einsum("sgi,sij,sgj->sg", input_rows, sigmas[:-1], input_rows)
     return z_q * (np.sqrt(np.maximum(state_var, 0.0)) + np.sqrt(np.maximum(input_var, 0.0)))

@@ -174,11 +174,15 @@ class NonlinearMPC:
     name = "nonlinear_mpc"
     is_jax = False
 
-    def __init__(self, env, prior_params, opts: Options):
+    def __init__(self, env, prior_params, opts: Options, prediction_model=None, tightened: bool = False):
+        """See ``make_nonlinear_mpc``. Variants (GP-MPC) pass ``prediction_model``, a CasADi ``Function``
+        ``(x, u) -> x_next`` used instead of the prior's ``fd``, and ``tightened=True``, which adds a margin per
+        constraint row and stage (``solve``'s ``margins``) to the env's constraints."""
         self.env = env
         self.options = opts
         self.horizon = H = opts.horizon
         self.model = model = env.symbolic_model(prior_params, discretization=opts.discretization)
+        self.fd = model.fd if prediction_model is None else prediction_model
         nx, nu = self.nx, self.nu = model.nx, model.nu
         Q = np.diag(weight_diagonal(f"{PATH}.q_diag", opts.q_diag, np.diag(np.asarray(prior_params.Q, float)), nx))
         R = np.diag(weight_diagonal(f"{PATH}.r_diag", opts.r_diag, np.diag(np.asarray(prior_params.R, float)), nu))
@@ -208,6 +212,8 @@ class NonlinearMPC:
         S = opti.variable(ng_env, H) if (opts.soft_constraints and ng_env) else None
         x_init = opti.parameter(nx)
         x_ref = opti.parameter(nx, H + 1)
+        margin = opti.parameter(ng_env, H) if (tightened and ng_env) else None
+        self.tightened = margin is not None
         cost = 0
         # Constraint order defines the multiplier layout used to shift the dual warm start: the initial-state rows,
         # then H blocks of identical size (dynamics, input bounds, env constraints, slack signs).
@@ -216,10 +222,12 @@ class NonlinearMPC:
             dx = X[:, i] - x_ref[:, i]
             du = U[:, i] - self.u_eq
             cost += cs.bilin(Q, dx, dx) + cs.bilin(R, du, du)
-            opti.subject_to(X[:, i + 1] == model.fd(X[:, i], U[:, i]))
+            opti.subject_to(X[:, i + 1] == self.fd(X[:, i], U[:, i]))
             opti.subject_to(opti.bounded(self.u_low, U[:, i], self.u_high))
             if ng_env:
                 rows = model.g(X[:, i + 1], U[:, i]) + opts.constraint_margin
+                if margin is not None:
+                    rows = rows + margin[:, i]
                 if S is None:
                     opti.subject_to(rows <= 0)
                 else:
@@ -244,11 +252,15 @@ class NonlinearMPC:
         self._index_u = index_u.T.round().astype(int)  # (H, nu)
         self._index_s = index_s.T.round().astype(int) if S is not None else None  # (H, ng_env)
         self._nz = int(opti.nx)
-        pack_p = cs.Function("pack_p", [x_init, x_ref], [opti.p])
         codes_x0 = np.arange(nx, dtype=float)
         codes_ref = nx + np.arange(nx * (H + 1), dtype=float).reshape(H + 1, nx)
-        order = np.asarray(pack_p(codes_x0, codes_ref.T), dtype=float).ravel().round().astype(int)
-        self._param_order = order  # p = concatenate([x0, window.ravel()])[order]
+        if margin is None:
+            codes = np.asarray(cs.Function("pack_p", [x_init, x_ref], [opti.p])(codes_x0, codes_ref.T))
+        else:
+            codes_margin = nx * (H + 2) + np.arange(ng_env * H, dtype=float).reshape(H, ng_env)
+            pack_p = cs.Function("pack_p", [x_init, x_ref, margin], [opti.p])
+            codes = np.asarray(pack_p(codes_x0, codes_ref.T, codes_margin.T))
+        self._param_order = codes.ravel().round().astype(int)  # p = concatenate([x0, window, margins])[order]
         # Opti keeps the parameters that enter a constraint additively in its bounds (x_0 = x_init puts x_init
         # there), so the bounds are affine in p: stored as value at p = 0 plus a Jacobian, evaluated with numpy.
         bounds = cs.Function(
@@ -302,7 +314,7 @@ class NonlinearMPC:
         x = np.concatenate([x_plan[shift:], np.zeros((shift, self.nx))])
         u = np.concatenate([u_plan[shift:], np.repeat(u_plan[-1:], shift, axis=0)])
         for i in range(H + 1 - shift, H + 1):
-            x[i] = _vector(self.model.fd(x[i - 1], u[i - 1]))
+            x[i] = _vector(self.fd(x[i - 1], u[i - 1]))
         x[0] = x0
         lam = None
         if lam_g is not None:
@@ -311,12 +323,16 @@ class NonlinearMPC:
             lam = np.concatenate([lam_g[: self.nx], blocks.ravel()])
         return x, u, lam
 
-    def solve(self, x0, x_ref_window, x_guess, u_guess, lam_g=None) -> Solution:
+    def solve(self, x0, x_ref_window, x_guess, u_guess, lam_g=None, margins=None) -> Solution:
         """One NLP solve from ``x0`` (nx,) along ``x_ref_window`` (H + 1, nx), started from the guess
         ``x_guess`` (H + 1, nx), ``u_guess`` (H, nu) and, when given and ``warm_start="primal_dual"``, the
-        multipliers ``lam_g`` (ng,) (then IPOPT warm-starts with a small barrier parameter)."""
+        multipliers ``lam_g`` (ng,) (then IPOPT warm-starts with a small barrier parameter). ``margins``
+        (H, ng_env), for a ``tightened`` controller: added to each constraint row at each stage (default 0)."""
         x0 = np.asarray(x0, dtype=np.float64)
-        p = np.concatenate([x0, np.asarray(x_ref_window, dtype=np.float64).ravel()])[self._param_order]
+        parts = [x0, np.asarray(x_ref_window, dtype=np.float64).ravel()]
+        if self.tightened:
+            parts.append(np.zeros(self.horizon * self.ng_env) if margins is None else np.asarray(margins).ravel())
+        p = np.concatenate(parts)[self._param_order]
         lbg = self._lbg0 + self._lbg_p @ p
         ubg = self._ubg0 + self._ubg_p @ p
         z0 = np.zeros(self._nz)
@@ -346,6 +362,10 @@ class NonlinearMPC:
             wall_time_s=wall,
         )
 
+    def stage_margins(self, x_guess, u_guess):
+        """Margins (H, ng_env) of a ``tightened`` variant for the plan about to be solved (here: none)."""
+        return None
+
     # ------------------------------------------------------------------------------------------ protocol
     def reset(self, key, reference) -> NMPCState:
         """No plan yet; ``key`` and ``reference`` are unused (the controller is deterministic)."""
@@ -374,7 +394,8 @@ class NonlinearMPC:
             x_guess, u_guess, lam = self.shift(ctrl_state.x_plan, ctrl_state.u_plan, ctrl_state.lam_g, shift, x0)
         else:
             x_guess, u_guess = self.cold_guess(x0)
-        sol = self.solve(x0, window, x_guess, u_guess, lam if self.options.warm_start == "primal_dual" else None)
+        lam = lam if self.options.warm_start == "primal_dual" else None
+        sol = self.solve(x0, window, x_guess, u_guess, lam, self.stage_margins(x_guess, u_guess))
 
         finite = bool(np.all(np.isfinite(sol.x)) and np.all(np.isfinite(sol.u)))
         lam_next = None
