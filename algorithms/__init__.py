@@ -17,6 +17,7 @@ CONTROLLERS = {
     "linear_mpc": "algorithms.mpc.linear:make_linear_mpc",
     "linear_mpc_casadi": "algorithms.mpc.linear:make_linear_mpc_casadi",
     "nonlinear_mpc": "algorithms.mpc.nonlinear:make_nonlinear_mpc",
+    "gp_mpc": "algorithms.gp_mpc.controller:make_gp_mpc",
 }
 
 

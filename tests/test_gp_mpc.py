@@ -1,0 +1,69 @@
+"""GP-MPC on the paper's setting: the cart-pole with a 150% prior, 10 Hz, Q = diag(10, 1, 10, 1), R = 0.1."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+import scg_jax
+from algorithms import make_controller
+from algorithms.evaluation import evaluate
+from algorithms.gp_mpc.controller import learn, make_gp_mpc
+
+# The data-efficiency setting of the paper (Fig. 6): 10 Hz, 5 s episodes, x0 in +-0.3 m and +-0.1 rad.
+PAPER = dict(
+    ctrl_freq=10,
+    physics_freq=1000,
+    episode_len_sec=5,
+    Q=[10, 1, 10, 1],
+    R=[0.1],
+    init_state={"type": "uniform", "low": [-0.3, -0.1, -0.1, -0.1], "high": [0.3, 0.1, 0.1, 0.1]},
+)
+SMALL = {"horizon": 15, "rounds": 1, "train_episodes": 4, "eval_episodes": 8, "gp_iterations": 30,
+         "max_fit_points": 100, "num_inducing": 20}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def paper_cartpole():
+    env = scg_jax.make("cartpole", "stabilization", **PAPER)
+    params = env.default_params
+    return env, params, scg_jax.prior_params(env, params, 1.5)
+
+
+@pytest.mark.slow
+def test_gp_mpc_learns_the_150_percent_prior_mismatch_in_one_round(paper_cartpole):
+    """After one round (4 episodes, 20 s of data) GP-MPC is within 1.2x of the true-model MPC and at least 30%
+    better than the 150%-prior MPC, on the same 8 seeded episodes (paper: 0.818 -> 0.129)."""
+    env, params, prior = paper_cartpole
+    result = learn(env, params, prior, SMALL)
+    before, after = result.history[0], result.history[-1]
+    assert after["data_seconds"] == pytest.approx(20.0)
+    eval_key = jax.random.fold_in(jax.random.key(0), 10_000)  # learn's evaluation episodes (seed 0)
+    true_mpc = make_controller("nonlinear_mpc", env, params, {"horizon": 15})
+    true_rmse = evaluate(env, params, true_mpc, eval_key, 8, measure_time=False).summary["rmse"]
+    print(f"RMSE: prior MPC {before['rmse']:.3f}, GP-MPC {after['rmse']:.3f}, true-model MPC {true_rmse:.3f}")
+    assert before["rmse"] > 2.0 * true_rmse  # the 150% prior costs accuracy
+    assert after["rmse"] <= 0.7 * before["rmse"]
+    assert after["rmse"] <= 1.2 * true_rmse
+
+
+def test_gp_mpc_without_a_gp_is_the_nonlinear_mpc(paper_cartpole):
+    """No GP and no initial uncertainty: zero margins, the same NLP as nonlinear_mpc, the same first inputs."""
+    env, params, prior = paper_cartpole
+    options = {"horizon": 10, "soft_constraints": False}
+    gp_mpc = make_gp_mpc(env, prior, options)
+    nmpc = make_controller("nonlinear_mpc", env, prior, options)
+    a = evaluate(env, params, gp_mpc, jax.random.key(3), 2, measure_time=False)
+    b = evaluate(env, params, nmpc, jax.random.key(3), 2, measure_time=False)
+    np.testing.assert_allclose(a.trajectory["u_cmd"][:20], b.trajectory["u_cmd"][:20], atol=1e-6)
+
+
+def test_bad_options_are_named(paper_cartpole):
+    env, params, prior = paper_cartpole
+    with pytest.raises(ValueError, match=r"controllers.gp_mpc.prob: must be in \(0, 1\)"):
+        make_gp_mpc(env, prior, {"prob": 1.5})
+    with pytest.raises(ValueError, match=r"controllers.gp_mpc.kernel: unknown value 'matern'"):
+        make_gp_mpc(env, prior, {"kernel": "matern"})
+    with pytest.raises(ValueError, match=r"controllers.gp_mpc.inducing_points: unknown"):
+        make_gp_mpc(env, prior, {"inducing_points": 10})
