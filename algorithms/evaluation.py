@@ -299,6 +299,7 @@ def _evaluate_host(env, params, controller, key, num_episodes, batched_params, p
     timing = {"compile_s": 0.0, "run_s": run_s, "controller_calls": len(act_times)}
     if act_times:
         timing["controller_mean_s"] = float(np.mean(act_times))
+        timing["controller_p95_s"] = float(np.percentile(act_times, 95))
         timing["controller_max_s"] = float(np.max(act_times))
     return trajectory, timing, per_step, None
 
