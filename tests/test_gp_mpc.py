@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 import scg_jax
-from algorithms import make_controller
+from algorithms import gp, make_controller
 from algorithms.evaluation import evaluate
-from algorithms.gp_mpc.controller import learn, make_gp_mpc
+from algorithms.gp_mpc.controller import LearningResult, is_run, learn, load_run, make_gp_mpc, save_run
 
 # The data-efficiency setting of the paper (Fig. 6): 10 Hz, 5 s episodes, x0 in +-0.3 m and +-0.1 rad.
 PAPER = dict(
@@ -67,3 +67,25 @@ def test_bad_options_are_named(paper_cartpole):
         make_gp_mpc(env, prior, {"kernel": "matern"})
     with pytest.raises(ValueError, match=r"controllers.gp_mpc.inducing_points: unknown"):
         make_gp_mpc(env, prior, {"inducing_points": 10})
+
+
+def test_a_saved_run_loads_to_the_same_controller(paper_cartpole, tmp_path):
+    env, params, prior = paper_cartpole
+    rng = np.random.default_rng(0)
+    z = rng.uniform(-0.3, 0.3, (40, 5))
+    e = 0.01 * np.tanh(z[:, :4] + z[:, 4:])
+    posterior = gp.fitc_posterior(z, e, gp.hyperparams(np.ones((4, 5)), 1e-4 * np.ones(4), 1e-6 * np.ones(4)), z[:10])
+    options = {"horizon": 8}
+    controller = make_gp_mpc(env, prior, options, posterior)
+    result = LearningResult(posterior, controller, [{"round": 0, "rmse": 1.0}], (z, e))
+    save_run(tmp_path, result, options, system="cartpole", prior_scale=1.5)
+    assert is_run(tmp_path) and not is_run(tmp_path / "missing")
+    loaded = load_run(tmp_path, env, prior)
+    a = evaluate(env, params, controller, jax.random.key(5), 1, measure_time=False)
+    b = evaluate(env, params, loaded, jax.random.key(5), 1, measure_time=False)
+    np.testing.assert_array_equal(a.trajectory["u_cmd"], b.trajectory["u_cmd"])
+    quad = scg_jax.make("quadrotor_2d")
+    with pytest.raises(ValueError, match=r"the GP was learned on the cartpole and cannot control the quadrotor_2d"):
+        load_run(tmp_path, quad, quad.default_params)
+    with pytest.raises(ValueError, match=r"controllers.gp_mpc.rounds: nothing was learned"):
+        save_run(tmp_path, result._replace(posterior=None), options, system="cartpole", prior_scale=1.5)
