@@ -51,7 +51,14 @@ def check_output_dir(path) -> Path:
             'out' is a file, not a folder``.
     """
     path = Path(path)
-    existing = path
+    _check_folder(path, path)
+    return path
+
+
+def _check_folder(folder: Path, target: Path) -> None:
+    """``check_output_dir`` of ``folder``, naming ``target`` (the folder or a file in it) in messages."""
+    path = target
+    existing = folder
     while not existing.exists():
         if existing.is_symlink():  # a dangling link: writing through it would fail later
             raise ValueError(f"cannot write results to {str(path)!r}: {str(existing)!r} is a broken link")
@@ -67,7 +74,6 @@ def check_output_dir(path) -> Path:
         ) from None
     os.close(fd)
     os.unlink(probe)
-    return path
 
 
 def check_output_file(path) -> Path:
@@ -75,5 +81,5 @@ def check_output_file(path) -> Path:
     path = Path(path)
     if path.is_dir():
         raise ValueError(f"cannot write results to {str(path)!r}: it is a folder, expected a file name")
-    check_output_dir(path.parent)
+    _check_folder(path.parent, path)
     return path

@@ -178,7 +178,8 @@ def _draw_bounds(ax, data: dict, prefix: str, j: int, values) -> tuple[bool, str
             continue
         if finite.size:
             lo, hi = float(finite.min()), float(finite.max())
-            span = max(hi - lo, 1e-6 * max(1.0, abs(lo), abs(hi)))
+            # Nearly constant data (a held input) gets a range of 10% of its size, so a bound close to it shows.
+            span = max(hi - lo, 0.1 * max(abs(lo), abs(hi)), 1e-9)
             near = lo - span <= bound <= hi + span
         else:
             near = True
