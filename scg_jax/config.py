@@ -22,15 +22,14 @@ meaning, same default)::
 A key left out (or ``null`` where the default is ``null``) means ``make``'s default; the defaults of
 ``EnvConfig`` are read from ``scg_jax.env._OPTION_DEFAULTS`` so the two cannot disagree.
 
-Checking happens in two places, and every message starts with the dotted path of the field:
-
-- loading (``Config.from_dict``, ``load_config``, and constructing the dataclasses directly) checks keys,
-  types, structural shapes (e.g. ``trajectory.offset`` has 2 numbers, a matrix has equal-length rows) and the
-  fixed sets of names (system, task, integrator, constraint and disturbance types, channels, ...);
-  ``env.ctrl_freq: expected an integer, got 'fast'``, ``env.trajctory: unknown key; allowed keys are ...``;
-- ``make_from_config`` checks everything that depends on values or on the system (vector lengths, positive
-  masses, frequencies, per-type keys) through ``make`` itself and prefixes its messages with ``env.``:
-  ``env.physics_freq: must be a multiple of ctrl_freq (15 Hz), got 1000 Hz; allowed values are 15, 30, ...``.
+Every check goes through ``scg_jax.validation`` and raises its ``FieldError`` (``ConfigError`` here, a
+``ValueError``) whose ``path`` is the dotted path of the field. Constructing a section (``load_config``,
+``Config.from_dict`` or the dataclasses directly) checks keys (per type for constraints, disturbances and
+distributions), types, structural shapes and the fixed sets of names: ``env.ctrl_freq: expected an integer, got
+'fast'``, ``env.trajctory: unknown key; allowed keys are ... (did you mean 'trajectory'?)``. ``make_from_config``
+passes the typed ``EnvConfig`` to ``make``, which checks what depends on the system or on several fields (vector
+lengths, positive masses, frequencies) and raises with paths inside the section; they gain the ``env.`` prefix:
+``env.physics_freq: must be a multiple of ctrl_freq (15 Hz), got 1000 Hz; allowed values are 15, 30, ...``.
 
 YAML is read with YAML 1.2 scalars: only ``true``/``false`` are booleans (so the constraint key ``on`` stays
 a string, where YAML 1.1 reads it as ``true``) and ``1e-3`` is a number (YAML 1.1 reads it as a string).
@@ -83,7 +82,6 @@ ConfigError = V.FieldError
 # --------------------------------------------------------------------------------------------- YAML
 _BOOL_TAG = "tag:yaml.org,2002:bool"
 _FLOAT_TAG = "tag:yaml.org,2002:float"
-_FLOAT_RE = V._YAML_FLOAT
 
 
 class _Loader(yaml.SafeLoader):
@@ -110,7 +108,7 @@ _Loader.yaml_implicit_resolvers = {
     for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
 }
 _Loader.add_implicit_resolver(_BOOL_TAG, re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF"))
-_Loader.add_implicit_resolver(_FLOAT_TAG, _FLOAT_RE, list("-+0123456789."))
+_Loader.add_implicit_resolver(_FLOAT_TAG, V.YAML_FLOAT, list("-+0123456789."))
 
 
 def _yaml_load(text: str, where: str):
@@ -152,9 +150,9 @@ def _rows(value, path):
 
 def _vector_or_matrix(value, path):
     """A list of numbers or a list of equal-length lists of numbers."""
-    if V._is_sequence(value) and len(value) and V._is_sequence(value[0]):
+    if V.is_sequence(value) and len(value) and V.is_sequence(value[0]):
         return _rows(value, path)
-    if V._is_sequence(value):
+    if V.is_sequence(value):
         return _numbers()(value, path)
     raise ConfigError(
         path, f"expected a list of numbers or a list of equal-length lists of numbers, got {V.show(value)}"
@@ -162,7 +160,7 @@ def _vector_or_matrix(value, path):
 
 
 def _integers(value, path):
-    if not V._is_sequence(value):
+    if not V.is_sequence(value):
         raise ConfigError(path, f"expected a list of integers, got {V.show(value)}")
     return tuple(V.integer(item, V.join(path, i)) for i, item in enumerate(value))
 
@@ -237,7 +235,7 @@ def _distribution(value, path):
     """A distribution mapping, or a fixed value (a number or a list of numbers)."""
     if isinstance(value, DistributionConfig | Mapping):
         return DistributionConfig.from_dict(value, path)
-    if V._is_real(V._scalar(value)) or V._is_sequence(value):
+    if V.is_number(value) or V.is_sequence(value):
         return _number_or_numbers()(value, path)
     raise ConfigError(
         path,

@@ -28,6 +28,8 @@ __all__ = [
     "boolean",
     "check_keys",
     "integer",
+    "is_number",
+    "is_sequence",
     "join",
     "matrix",
     "name",
@@ -120,7 +122,7 @@ def boolean(value, path: str) -> bool:
 
 # --------------------------------------------------------------------------------------------- numbers
 # YAML 1.1 readers (plain ``yaml.safe_load``) leave ``1e-3`` a string; ``number(..., yaml_strings=True)`` reads it.
-_YAML_FLOAT = re.compile(
+YAML_FLOAT = re.compile(
     r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
     |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
     |[-+]?\.[0-9_]+(?:[eE][-+]?[0-9]+)?
@@ -141,11 +143,16 @@ def _is_real(value) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
+def is_number(value) -> bool:
+    """A real number (a numpy scalar or 0-d array too), not a bool."""
+    return _is_real(_scalar(value))
+
+
 def number(value, path: str, *, allow_inf: bool = False, yaml_strings: bool = False) -> float:
     """A real number as a float: never a bool or a string (but see ``yaml_strings``), never NaN, and finite unless
     ``allow_inf`` (e.g. a one-sided bound)."""
     value = _scalar(value)
-    if yaml_strings and isinstance(value, str) and _YAML_FLOAT.match(value):
+    if yaml_strings and isinstance(value, str) and YAML_FLOAT.match(value):
         value = float(value.replace("_", "").lower().replace(".inf", "inf").replace(".nan", "nan"))
     if not _is_real(value):
         raise FieldError(path, f"expected a {'' if allow_inf else 'finite '}number, got {show(value)}")
@@ -185,7 +192,8 @@ def integer(value, path: str, minimum: int | None = None) -> int:
 
 
 # --------------------------------------------------------------------------------------------- arrays
-def _is_sequence(value) -> bool:
+def is_sequence(value) -> bool:
+    """A list, tuple or array of at least one dimension (not a string, not a mapping)."""
     return isinstance(value, list | tuple | np.ndarray) or (hasattr(value, "__array__") and np.ndim(value) > 0)
 
 
@@ -203,7 +211,7 @@ def vector(
         return np.full(() if n is None else n, item)
     what = "a list of numbers" if n is None else f"{n} values"
     what = f"a number or {what}" if broadcast else what
-    if not _is_sequence(value) or np.ndim(value) != 1:
+    if not is_sequence(value) or np.ndim(value) != 1:
         raise FieldError(path, f"expected {what}, got {show(value)}")
     items = list(value)
     if n is not None and len(items) != n:
@@ -217,7 +225,7 @@ def matrix(
 ) -> np.ndarray:
     """A non-empty list of equal-length lists of numbers as a float64 array (rows, cols) (any size where None)."""
     value = _scalar(value)
-    if not (_is_sequence(value) and len(value) and all(_is_sequence(row) for row in value)):
+    if not (is_sequence(value) and len(value) and all(is_sequence(row) for row in value)):
         raise FieldError(path, f"expected a matrix (a list of equal-length lists of numbers), got {show(value)}")
     kw = {"allow_inf": allow_inf, "yaml_strings": yaml_strings}
     array = [vector(row, join(path, i), **kw) for i, row in enumerate(value)]

@@ -199,7 +199,7 @@ def test_gain_convention_the_default_lqr_gain_passed_explicitly_stabilises(tmp_p
     _, default = _run(tmp_path, "default", *common)
     K = np.asarray(default["gain"])
     np.testing.assert_allclose(K, [[-2.781, -5.150, -43.88, -11.58]], rtol=2e-3)  # the help text's example
-    _, explicit = _run(tmp_path, "explicit", *common, "--gain", ",".join(repr(k) for k in K.ravel()))
+    _, explicit = _run(tmp_path, "explicit", *common, "--gain", ",".join(str(float(k)) for k in K.ravel()))
     assert explicit["summary"]["failure_rate"] == default["summary"]["failure_rate"] == 0.0
     np.testing.assert_allclose(explicit["per_copy"]["rmse"], default["per_copy"]["rmse"], rtol=1e-6)
     # The opposite sign on the cart terms (a gain for u = u_ref + K e on x) drops most poles.
@@ -218,13 +218,15 @@ def test_gain_help_states_the_sign_convention(capsys):
 @pytest.fixture
 def no_work(monkeypatch):
     """Fail the test if a command starts computing: the output location must be refused before."""
+    import importlib
+
     import algorithms.evaluation
-    import scg_jax.rollout
 
     def refuse(*args, **kwargs):
         raise AssertionError("the command started computing before checking --out")
 
-    monkeypatch.setattr(scg_jax.rollout, "make_rollout", refuse)
+    # scg_jax.rollout is also the name of a function in scg_jax, so fetch the module itself.
+    monkeypatch.setattr(importlib.import_module("scg_jax.rollout"), "make_rollout", refuse)
     monkeypatch.setattr(algorithms.evaluation, "evaluate", refuse)
 
 
@@ -286,3 +288,21 @@ def test_missing_out_parents_are_created_when_results_are_written(tmp_path):
     out = tmp_path / "new" / "nested" / "eval.json"
     assert main(["eval", *_EVAL_ENV, "--controller", "lqr", "--out", str(out)]) == 0
     assert json.loads(out.read_text())["controller"] == "lqr"
+
+
+def test_check_output_dir_refuses_a_folder_it_cannot_write(tmp_path, monkeypatch):
+    """The write probe is the test (os.access ignores read-only mounts and says yes to root); simulate its refusal
+    so this runs as root too."""
+    import tempfile
+
+    from scg_jax.files import check_output_dir
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    with pytest.raises(ValueError) as err:
+        check_output_dir(tmp_path / "a" / "b")
+    assert str(err.value) == (
+        f"cannot write results to '{tmp_path / 'a' / 'b'}': '{tmp_path}' is not writable (Permission denied)"
+    )
