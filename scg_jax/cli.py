@@ -51,6 +51,9 @@ _FLAG_OF_OPTION = {
 }
 
 
+_OUT_CHECKED = "; missing folders are created, and a location that cannot be written is refused before any work"
+
+
 class _UsageError(Exception):
     """Bad command-line input found after parsing; reported through the subcommand's ``parser.error``."""
 
@@ -184,7 +187,11 @@ def _add_rollout_parser(subparsers) -> argparse.ArgumentParser:
     )
     run.add_argument("--num-envs", type=_positive_int, default=64, help="parallel copies (default: 64)")
     run.add_argument("--seed", type=int, default=0, help="PRNG seed (default: 0)")
-    run.add_argument("--out", type=Path, help="output folder (default: results/rollout/SYSTEM-TASK-POLICY-seedSEED)")
+    run.add_argument(
+        "--out",
+        type=Path,
+        help=f"output folder, created if missing (default: results/rollout/SYSTEM-TASK-POLICY-seedSEED){_OUT_CHECKED}",
+    )
     return parser
 
 
@@ -399,7 +406,9 @@ def _add_eval_parser(subparsers) -> argparse.ArgumentParser:
         help=f"controller name ({', '.join(CONTROLLERS)}) or the folder of a policy written by scg-jax train",
     )
     _add_controller_arguments(parser)
-    parser.add_argument("--out", type=Path, required=True, metavar="FILE.json", help="metrics JSON to write")
+    parser.add_argument(
+        "--out", type=Path, required=True, metavar="FILE.json", help=f"metrics JSON to write{_OUT_CHECKED}"
+    )
     return parser
 
 
@@ -419,7 +428,9 @@ def _add_compare_parser(subparsers) -> argparse.ArgumentParser:
         help=f"comma-separated controller names ({', '.join(CONTROLLERS)}) and/or policy folders",
     )
     _add_controller_arguments(parser)
-    parser.add_argument("--out", type=Path, metavar="FILE.json", help="write every controller's metrics here")
+    parser.add_argument(
+        "--out", type=Path, metavar="FILE.json", help=f"write every controller's metrics here{_OUT_CHECKED}"
+    )
     return parser
 
 
