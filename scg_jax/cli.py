@@ -312,37 +312,31 @@ def _rollout_data(env, params, traj) -> dict[str, np.ndarray]:
     import jax
 
     x_ref, u_ref = jax.jit(env.reference)(params)
+    info = ("u", "constraint_values", "mse", "out_of_bounds", "nonfinite")
+    return {
+        **_env_arrays(env, params),
+        "x": np.asarray(traj.x),
+        "x_final": np.asarray(traj.final_state.x),
+        **{name: np.asarray(getattr(traj, name)) for name in ("action", "reward", "cost", "terminated", "truncated")},
+        **{name: np.asarray(traj.info[name]) for name in info},
+        "x_ref": np.asarray(x_ref),
+        "u_ref": np.asarray(u_ref),
+    }
+
+
+def _env_arrays(env, params) -> dict[str, np.ndarray]:
+    """What ``plot_rollout`` needs besides the trajectory: times, names, the plane of a quadrotor's path and the
+    constraint boxes."""
+    from scg_jax.constraints import box_bounds
+
     data = {
         "t": env.dt * np.arange(env.num_steps, dtype=np.float64),
         "dt": np.float64(env.dt),
-        "x": np.asarray(traj.x),
-        "x_final": np.asarray(traj.final_state.x),
-        "action": np.asarray(traj.action),
-        "u": np.asarray(traj.info["u"]),
-        "reward": np.asarray(traj.reward),
-        "cost": np.asarray(traj.cost),
-        "constraint_values": np.asarray(traj.info["constraint_values"]),
-        "terminated": np.asarray(traj.terminated),
-        "truncated": np.asarray(traj.truncated),
-        "mse": np.asarray(traj.info["mse"]),
-        "out_of_bounds": np.asarray(traj.info["out_of_bounds"]),
-        "nonfinite": np.asarray(traj.info["nonfinite"]),
-        "x_ref": np.asarray(x_ref),
-        "u_ref": np.asarray(u_ref),
         "state_names": np.asarray(env.system.state_names),
         "input_names": np.asarray(env.system.input_names),
         "system": np.asarray(env.system.name),
         "task": np.asarray(env.task),
     }
-    data.update(_plot_extras(env, params))
-    return data
-
-
-def _plot_extras(env, params) -> dict[str, np.ndarray]:
-    """The plane of a quadrotor's path and the constraint boxes, for ``plot_rollout``."""
-    from scg_jax.constraints import box_bounds
-
-    data = {}
     plane = _plane_indices(env)
     if plane is not None:
         data["plane"] = np.asarray(plane[0])
@@ -559,22 +553,15 @@ def _run_eval(args: argparse.Namespace, console) -> int:
     env, params, cfg = _make_env(args)
     controller = _build_controller(args.controller, env, params, cfg, args.prior_scale)
     evaluation = _evaluate(controller, env, params, args, console)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     npz_path, png_path = args.out.with_suffix(".npz"), args.out.with_suffix(".png")
     data = {
-        "t": env.dt * np.arange(env.num_steps, dtype=np.float64),
-        "dt": np.float64(env.dt),
+        **_env_arrays(env, params),
         **{name: value for name, value in evaluation.trajectory.items() if name not in ("x", "x_ref")},
         "x": evaluation.trajectory["x"][:-1],
         "x_final": evaluation.trajectory["x"][-1],
         # The plot draws one reference; copies share it unless the params were a sweep.
         "x_ref": evaluation.trajectory["x_ref"][:, 0],
-        "state_names": np.asarray(env.system.state_names),
-        "input_names": np.asarray(env.system.input_names),
-        "system": np.asarray(env.system.name),
-        "task": np.asarray(env.task),
         "controller": np.asarray(controller.name),
-        **_plot_extras(env, params),
     }
     write_atomic(npz_path, lambda file: np.savez_compressed(file, **data))
     record = evaluation_record(evaluation, _evaluation_extra(env, cfg, args, controller))
