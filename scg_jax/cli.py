@@ -35,7 +35,8 @@ TASKS = ("stabilization", "tracking")
 POLICIES = ("zero", "random", "linear")
 _AXES = "xyz"
 
-# The env options a flag sets: option (its dotted path under env) -> (flag, argparse dest).
+# The env options a flag sets: option (its path under env) -> (flag, argparse dest). An error at that path names the
+# flag, the one a user would change (e.g. --physics-freq when 1000 Hz is no multiple of --ctrl-freq 15).
 _FLAG_OF_OPTION = {
     "system": ("--system", "system"),
     "task": ("--task", "task"),
