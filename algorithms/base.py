@@ -31,11 +31,11 @@ function), so a deliberately wrong prior is a choice of the caller. ``options`` 
 from __future__ import annotations
 
 import dataclasses
-import difflib
-import math
 import numbers
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, ClassVar, NamedTuple, Protocol, runtime_checkable
+
+from scg_jax import validation as V
 
 
 class Reference(NamedTuple):
@@ -98,40 +98,20 @@ def option(default, doc: str = "", choices: Sequence[str] | None = None):
 
 
 def _check_value(path: str, value, default, choices):
-    """``value`` converted to the type of ``default``, or a ValueError that names ``path``."""
+    """``value`` converted to the type of ``default`` through ``scg_jax.validation``, or a ``FieldError`` naming
+    ``path``."""
     if choices is not None:
-        if value not in choices:
-            raise ValueError(f"{path}: unknown value {value!r}; allowed values are {', '.join(choices)}")
-        return value
+        return V.name(value, path, choices)
     if isinstance(default, bool):
-        if not isinstance(value, bool):
-            raise ValueError(f"{path}: expected true or false, got {value!r}")
-        return value
+        return V.boolean(value, path)
     if isinstance(default, numbers.Integral):
-        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not float(value).is_integer():
-            raise ValueError(f"{path}: expected an integer, got {value!r}")
-        return int(value)
+        return V.integer(value, path)
     if isinstance(default, numbers.Real):
-        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-            raise ValueError(f"{path}: expected a finite number, got {value!r}")
-        return float(value)
+        return V.number(value, path)
     if isinstance(default, str):
-        if not isinstance(value, str):
-            raise ValueError(f"{path}: expected a string, got {value!r}")
-        return value
+        return V.string(value, path)
     if default is None or isinstance(default, tuple):
-        if value is None:
-            return None
-        if isinstance(value, numbers.Real) and not isinstance(value, bool):
-            value = [value]
-        if not isinstance(value, Sequence) or isinstance(value, str):
-            raise ValueError(f"{path}: expected a number or a list of numbers, got {value!r}")
-        out = []
-        for i, item in enumerate(value):
-            if isinstance(item, bool) or not isinstance(item, numbers.Real) or not math.isfinite(item):
-                raise ValueError(f"{path}[{i}]: expected a finite number, got {item!r}")
-            out.append(float(item))
-        return tuple(out)
+        return None if value is None else tuple(V.vector(value, path, broadcast=True).reshape(-1).tolist())
     return value
 
 
@@ -155,14 +135,11 @@ def parse_options(cls, options: Mapping | None, path: str):
     if isinstance(options, cls):
         return options
     if not isinstance(options, Mapping):
-        raise ValueError(f"{path}: expected a mapping of options, got {options!r}")
+        raise V.FieldError(path, f"expected a mapping of options, got {V.show(options)}")
     fields = {field.name: field for field in dataclasses.fields(cls)}
+    V.check_keys(options, path, fields)
     kwargs = {}
     for key, value in options.items():
-        if key not in fields:
-            close = difflib.get_close_matches(str(key), list(fields), n=1)
-            hint = f" (did you mean {close[0]!r}?)" if close else ""
-            raise ValueError(f"{path}.{key}: unknown key; allowed keys are {', '.join(fields)}{hint}")
         field = fields[key]
         kwargs[key] = _check_value(f"{path}.{key}", value, field.default, field.metadata.get("choices"))
     result = cls(**kwargs)
@@ -173,9 +150,8 @@ def parse_options(cls, options: Mapping | None, path: str):
 
 
 def positive(path: str, value) -> None:
-    """Raise ``ValueError`` naming ``path`` unless ``value > 0``."""
-    if not value > 0:
-        raise ValueError(f"{path}: must be positive, got {value!r}")
+    """Raise ``FieldError`` (a ValueError) naming ``path`` unless ``value > 0`` (``scg_jax.validation.positive``)."""
+    V.positive(value, path)
 
 
 def weight_diagonal(path: str, value, default, n: int):

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import re
 import sys
 import time
 from collections.abc import Callable
@@ -34,20 +35,24 @@ TASKS = ("stabilization", "tracking")
 POLICIES = ("zero", "random", "linear")
 _AXES = "xyz"
 
-# make()'s option names as they appear in its ValueErrors, and the flag a user would have to change.
+# The env options a flag sets: option (its path under env) -> (flag, argparse dest). An error at that path names the
+# flag, the one a user would change (e.g. --physics-freq when 1000 Hz is no multiple of --ctrl-freq 15).
 _FLAG_OF_OPTION = {
-    "system": "--system",
-    "task": "--task",
-    "ctrl_freq": "--ctrl-freq",
-    "physics_freq": "--physics-freq",
-    "episode_len_sec": "--episode-len",
-    "integrator": "--integrator",
-    "trajectory.shape": "--shape",
-    "trajectory.num_cycles": "--num-cycles",
-    "trajectory.plane": "--plane",
-    "trajectory.offset": "--offset",
-    "trajectory.scale": "--scale",
+    "system": ("--system", "system"),
+    "task": ("--task", "task"),
+    "ctrl_freq": ("--ctrl-freq", "ctrl_freq"),
+    "physics_freq": ("--physics-freq", "physics_freq"),
+    "episode_len_sec": ("--episode-len", "episode_len"),
+    "integrator": ("--integrator", "integrator"),
+    "trajectory.shape": ("--shape", "shape"),
+    "trajectory.num_cycles": ("--num-cycles", "num_cycles"),
+    "trajectory.plane": ("--plane", "plane"),
+    "trajectory.offset": ("--offset", "offset"),
+    "trajectory.scale": ("--scale", "scale"),
 }
+
+
+_OUT_CHECKED = "; missing folders are created, and a location that cannot be written is refused before any work"
 
 
 class _UsageError(Exception):
@@ -106,11 +111,10 @@ def _add_env_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _make_env(args: argparse.Namespace):
-    """``(env, params, config)`` from ``--config``/``--system``, the explicit flags and ``--set``; config and
-    ``make`` errors become ``_UsageError`` naming the flag or the dotted config path."""
-    import yaml
-
+    """``(env, params, config)`` from ``--config``/``--system``, the explicit flags (set as typed values, no YAML
+    text) and ``--set``; config and ``make`` errors become ``_UsageError`` naming the flag or the dotted path."""
     from scg_jax.config import load_config, make_from_config
+    from scg_jax.validation import FieldError
 
     if args.config is None and args.system is None:
         raise _UsageError("argument --system: required unless --config is given")
@@ -119,35 +123,28 @@ def _make_env(args: argparse.Namespace):
             f"argument --offset: expected 2 comma-separated values A,B (m), got {len(args.offset)}: "
             f"{','.join(map(str, args.offset))}"
         )
-    flags = {
-        "system": args.system,
-        "task": args.task,
-        "ctrl_freq": args.ctrl_freq,
-        "physics_freq": args.physics_freq,
-        "episode_len_sec": args.episode_len,
-        "integrator": args.integrator,
-        "trajectory.shape": args.shape,
-        "trajectory.num_cycles": args.num_cycles,
-        "trajectory.plane": args.plane,
-        "trajectory.scale": args.scale,
-        "trajectory.offset": args.offset,
-    }
-    overrides = [
-        f"env.{key}={yaml.safe_dump(value, default_flow_style=True).strip().removesuffix('...').strip()}"
-        for key, value in flags.items()
-        if value is not None
-    ]
+    flags = {f"env.{option}": getattr(args, dest) for option, (_, dest) in _FLAG_OF_OPTION.items()}
     source = args.config if args.config is not None else {"env": {"system": args.system}}
     try:
-        cfg = load_config(source, overrides + list(args.set))
+        cfg = load_config(source, list(args.set), values=flags)
         env, params = make_from_config(cfg)
         return env, params, cfg
-    except (ValueError, OSError) as error:
-        message = str(error)
-        option = message.split(":", 1)[0].removeprefix("env.")
-        if option in _FLAG_OF_OPTION:
-            message = f"argument {_FLAG_OF_OPTION[option]}: {message}"
-        raise _UsageError(message) from None
+    except FieldError as error:
+        option = error.path.removeprefix("env.")
+        flag = f"argument {_FLAG_OF_OPTION[option][0]}: " if option in _FLAG_OF_OPTION else ""
+        raise _UsageError(f"{flag}{error}") from None
+    except (ValueError, OSError) as error:  # e.g. a config file that cannot be read
+        raise _UsageError(str(error)) from None
+
+
+def _output(path: Path, kind: str) -> Path:
+    """``--out`` checked before any work (``check_output_dir`` / ``check_output_file``), as a usage error."""
+    from scg_jax.files import check_output_dir, check_output_file
+
+    try:
+        return check_output_dir(path) if kind == "dir" else check_output_file(path)
+    except ValueError as error:
+        raise _UsageError(f"argument --out: {error}") from None
 
 
 def _plane_indices(env) -> tuple[str, tuple[int, int]] | None:
@@ -183,11 +180,19 @@ def _add_rollout_parser(subparsers) -> argparse.ArgumentParser:
         "--gain",
         type=_float_list,
         metavar="K11,K12,...",
-        help="linear gain K, nu x nx row-major (default: LQR about the goal or the first reference point)",
+        help=(
+            "gain K of the linear policy u = u_ref - K (x - x_ref) (note the minus sign), nu x nx values, row-major; "
+            "e.g. --gain -2.8,-5.2,-43.9,-11.6, about the cart-pole's default (default: LQR about the goal or the "
+            "first reference point; the gain used is printed and saved in metrics.json)"
+        ),
     )
     run.add_argument("--num-envs", type=_positive_int, default=64, help="parallel copies (default: 64)")
     run.add_argument("--seed", type=int, default=0, help="PRNG seed (default: 0)")
-    run.add_argument("--out", type=Path, help="output folder (default: results/rollout/SYSTEM-TASK-POLICY-seedSEED)")
+    run.add_argument(
+        "--out",
+        type=Path,
+        help=f"output folder, created if missing (default: results/rollout/SYSTEM-TASK-POLICY-seedSEED){_OUT_CHECKED}",
+    )
     return parser
 
 
@@ -241,6 +246,7 @@ def _run_rollout(args: argparse.Namespace, console) -> int:
 
     env, params, cfg = _make_env(args)
     out = args.out or Path("results", "rollout", f"{env.system.name}-{env.task}-{args.policy}-seed{args.seed}")
+    _output(out, "dir")
 
     with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=console) as bar:
         stage = bar.add_task(f"linearising {env.system.name} and building the policy", total=1)
@@ -298,7 +304,7 @@ def _run_rollout(args: argparse.Namespace, console) -> int:
         plot_rollout(out / "rollout.npz", out / "rollout.png")
         bar.update(stage, completed=1)
 
-    console.print(_metrics_table(args, env, summary, compile_s, run_s, steps_per_s))
+    console.print(_metrics_table(args, env, summary, compile_s, run_s, steps_per_s, gain))
     console.print(f"wrote {out / 'rollout.npz'}, {out / 'metrics.json'}, {out / 'rollout.png'}")
     return 0
 
@@ -307,37 +313,31 @@ def _rollout_data(env, params, traj) -> dict[str, np.ndarray]:
     import jax
 
     x_ref, u_ref = jax.jit(env.reference)(params)
+    info = ("u", "constraint_values", "mse", "out_of_bounds", "nonfinite")
+    return {
+        **_env_arrays(env, params),
+        "x": np.asarray(traj.x),
+        "x_final": np.asarray(traj.final_state.x),
+        **{name: np.asarray(getattr(traj, name)) for name in ("action", "reward", "cost", "terminated", "truncated")},
+        **{name: np.asarray(traj.info[name]) for name in info},
+        "x_ref": np.asarray(x_ref),
+        "u_ref": np.asarray(u_ref),
+    }
+
+
+def _env_arrays(env, params) -> dict[str, np.ndarray]:
+    """What ``plot_rollout`` needs besides the trajectory: times, names, the plane of a quadrotor's path and the
+    constraint boxes."""
+    from scg_jax.constraints import box_bounds
+
     data = {
         "t": env.dt * np.arange(env.num_steps, dtype=np.float64),
         "dt": np.float64(env.dt),
-        "x": np.asarray(traj.x),
-        "x_final": np.asarray(traj.final_state.x),
-        "action": np.asarray(traj.action),
-        "u": np.asarray(traj.info["u"]),
-        "reward": np.asarray(traj.reward),
-        "cost": np.asarray(traj.cost),
-        "constraint_values": np.asarray(traj.info["constraint_values"]),
-        "terminated": np.asarray(traj.terminated),
-        "truncated": np.asarray(traj.truncated),
-        "mse": np.asarray(traj.info["mse"]),
-        "out_of_bounds": np.asarray(traj.info["out_of_bounds"]),
-        "nonfinite": np.asarray(traj.info["nonfinite"]),
-        "x_ref": np.asarray(x_ref),
-        "u_ref": np.asarray(u_ref),
         "state_names": np.asarray(env.system.state_names),
         "input_names": np.asarray(env.system.input_names),
         "system": np.asarray(env.system.name),
         "task": np.asarray(env.task),
     }
-    data.update(_plot_extras(env, params))
-    return data
-
-
-def _plot_extras(env, params) -> dict[str, np.ndarray]:
-    """The plane of a quadrotor's path and the constraint boxes, for ``plot_rollout``."""
-    from scg_jax.constraints import box_bounds
-
-    data = {}
     plane = _plane_indices(env)
     if plane is not None:
         data["plane"] = np.asarray(plane[0])
@@ -347,7 +347,7 @@ def _plot_extras(env, params) -> dict[str, np.ndarray]:
     return data
 
 
-def _metrics_table(args, env, summary: dict, compile_s: float, run_s: float, steps_per_s: float):
+def _metrics_table(args, env, summary: dict, compile_s: float, run_s: float, steps_per_s: float, gain=None):
     from rich.table import Table
 
     title = f"{env.system.name} {env.task} | policy {args.policy} | {args.num_envs} copies x {env.num_steps} steps"
@@ -362,6 +362,8 @@ def _metrics_table(args, env, summary: dict, compile_s: float, run_s: float, ste
     table.add_row("compile time (s)", f"{compile_s:.2f}")
     table.add_row("run wall time (s)", f"{run_s:.4f}")
     table.add_row("steps/s", f"{steps_per_s:,.0f}")
+    if gain is not None:  # printed as --gain takes it, so a user can start from it
+        table.add_row("gain K, u = u_ref - K (x - x_ref)", ",".join(f"{k:.4g}" for k in np.ravel(gain)))
     return table
 
 
@@ -399,7 +401,9 @@ def _add_eval_parser(subparsers) -> argparse.ArgumentParser:
         help=f"controller name ({', '.join(CONTROLLERS)}) or the folder of a policy written by scg-jax train",
     )
     _add_controller_arguments(parser)
-    parser.add_argument("--out", type=Path, required=True, metavar="FILE.json", help="metrics JSON to write")
+    parser.add_argument(
+        "--out", type=Path, required=True, metavar="FILE.json", help=f"metrics JSON to write{_OUT_CHECKED}"
+    )
     return parser
 
 
@@ -419,7 +423,9 @@ def _add_compare_parser(subparsers) -> argparse.ArgumentParser:
         help=f"comma-separated controller names ({', '.join(CONTROLLERS)}) and/or policy folders",
     )
     _add_controller_arguments(parser)
-    parser.add_argument("--out", type=Path, metavar="FILE.json", help="write every controller's metrics here")
+    parser.add_argument(
+        "--out", type=Path, metavar="FILE.json", help=f"write every controller's metrics here{_OUT_CHECKED}"
+    )
     return parser
 
 
@@ -542,27 +548,21 @@ def _run_eval(args: argparse.Namespace, console) -> int:
     from algorithms.evaluation import evaluation_record
     from scg_jax.plotting import plot_rollout
 
-    env, params, cfg = _make_env(args)
     if args.out.suffix != ".json":
         raise _UsageError(f"argument --out: expected a .json file name, got {str(args.out)!r}")
+    _output(args.out, "file")
+    env, params, cfg = _make_env(args)
     controller = _build_controller(args.controller, env, params, cfg, args.prior_scale)
     evaluation = _evaluate(controller, env, params, args, console)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     npz_path, png_path = args.out.with_suffix(".npz"), args.out.with_suffix(".png")
     data = {
-        "t": env.dt * np.arange(env.num_steps, dtype=np.float64),
-        "dt": np.float64(env.dt),
+        **_env_arrays(env, params),
         **{name: value for name, value in evaluation.trajectory.items() if name not in ("x", "x_ref")},
         "x": evaluation.trajectory["x"][:-1],
         "x_final": evaluation.trajectory["x"][-1],
         # The plot draws one reference; copies share it unless the params were a sweep.
         "x_ref": evaluation.trajectory["x_ref"][:, 0],
-        "state_names": np.asarray(env.system.state_names),
-        "input_names": np.asarray(env.system.input_names),
-        "system": np.asarray(env.system.name),
-        "task": np.asarray(env.task),
         "controller": np.asarray(controller.name),
-        **_plot_extras(env, params),
     }
     write_atomic(npz_path, lambda file: np.savez_compressed(file, **data))
     record = evaluation_record(evaluation, _evaluation_extra(env, cfg, args, controller))
@@ -585,6 +585,8 @@ def _run_compare(args: argparse.Namespace, console) -> int:
         raise _UsageError(f"argument --controllers: a controller is listed twice: {args.controllers}")
     if args.out is not None and args.out.suffix != ".json":
         raise _UsageError(f"argument --out: expected a .json file name, got {str(args.out)!r}")
+    if args.out is not None:
+        _output(args.out, "file")
     controllers = [_build_controller(spec, env, params, cfg, args.prior_scale) for spec in specs]
     records, summaries = {}, {}
     for spec, controller in zip(specs, controllers, strict=True):
@@ -698,13 +700,28 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
     return parser, subcommand_parsers
 
 
+_LIST_OPTIONS = ("--gain", "--offset")
+_NUMBER_LIST = re.compile(r"-[0-9.][0-9.eE+-]*(,[-+]?[0-9.][0-9.eE+-]*)*")
+
+
+def _join_negative_lists(argv: list[str]) -> list[str]:
+    """``--gain -2.8,-5.2`` -> ``--gain=-2.8,-5.2``: argparse would read a value starting with ``-`` as an option."""
+    out = []
+    for token in argv:
+        if out and out[-1] in _LIST_OPTIONS and _NUMBER_LIST.fullmatch(token):
+            out[-1] = f"{out[-1]}={token}"
+        else:
+            out.append(token)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI on ``argv`` (default: ``sys.argv[1:]``); returns the exit status (0 ok, 2 bad input)."""
     from rich.console import Console
 
     parser, subcommand_parsers = build_parser()
     try:
-        args = parser.parse_args(argv)
+        args = parser.parse_args(_join_negative_lists(sys.argv[1:] if argv is None else list(argv)))
         try:
             return _SUBCOMMANDS[args.command][1](args, Console())
         except _UsageError as error:

@@ -22,15 +22,14 @@ meaning, same default)::
 A key left out (or ``null`` where the default is ``null``) means ``make``'s default; the defaults of
 ``EnvConfig`` are read from ``scg_jax.env._OPTION_DEFAULTS`` so the two cannot disagree.
 
-Checking happens in two places, and every message starts with the dotted path of the field:
-
-- loading (``Config.from_dict``, ``load_config``, and constructing the dataclasses directly) checks keys,
-  types, structural shapes (e.g. ``trajectory.offset`` has 2 numbers, a matrix has equal-length rows) and the
-  fixed sets of names (system, task, integrator, constraint and disturbance types, channels, ...);
-  ``env.ctrl_freq: expected an integer, got 'fast'``, ``env.trajctory: unknown key; allowed keys are ...``;
-- ``make_from_config`` checks everything that depends on values or on the system (vector lengths, positive
-  masses, frequencies, per-type keys) through ``make`` itself and prefixes its messages with ``env.``:
-  ``env.physics_freq: must be a multiple of ctrl_freq (15 Hz), got 1000 Hz; allowed values are 15, 30, ...``.
+Every check goes through ``scg_jax.validation`` and raises its ``FieldError`` (``ConfigError`` here, a
+``ValueError``) whose ``path`` is the dotted path of the field. Constructing a section (``load_config``,
+``Config.from_dict`` or the dataclasses directly) checks keys (per type for constraints, disturbances and
+distributions), types, structural shapes and the fixed sets of names: ``env.ctrl_freq: expected an integer, got
+'fast'``, ``env.trajctory: unknown key; allowed keys are ... (did you mean 'trajectory'?)``. ``make_from_config``
+passes the typed ``EnvConfig`` to ``make``, which checks what depends on the system or on several fields (vector
+lengths, positive masses, frequencies) and raises with paths inside the section; they gain the ``env.`` prefix:
+``env.physics_freq: must be a multiple of ctrl_freq (15 Hz), got 1000 Hz; allowed values are 15, 30, ...``.
 
 YAML is read with YAML 1.2 scalars: only ``true``/``false`` are booleans (so the constraint key ``on`` stays
 a string, where YAML 1.1 reads it as ``true``) and ``1e-3`` is a number (YAML 1.1 reads it as a string).
@@ -42,9 +41,7 @@ from __future__ import annotations
 import contextvars
 import copy
 import dataclasses
-import difflib
 import inspect
-import numbers
 import os
 import re
 from collections.abc import Callable, Iterable, Mapping
@@ -57,6 +54,7 @@ import yaml
 from scg_jax import constraints as constraints_lib
 from scg_jax import disturbances as disturbances_lib
 from scg_jax import randomization, trajectories
+from scg_jax import validation as V
 from scg_jax.env import _OPTION_DEFAULTS, ACTION_MODES, REWARD_TYPES, TASKS, Env, EnvParams, make
 from scg_jax.integrators import INTEGRATORS
 from scg_jax.systems import SYSTEMS
@@ -76,26 +74,14 @@ __all__ = [
 ]
 
 
-class ConfigError(ValueError):
-    """A configuration problem; ``path`` is the dotted path of the field (``env.constraints[1].type``)."""
-
-    def __init__(self, path: str, reason: str):
-        self.path = path
-        self.reason = reason
-        super().__init__(f"{path}: {reason}" if path else reason)
+# One error type for every bad input: ``scg_jax.validation.FieldError`` (``.path`` is the dotted path of the field,
+# e.g. ``env.constraints[1].type``; ``.reason`` the rest of the message).
+ConfigError = V.FieldError
 
 
 # --------------------------------------------------------------------------------------------- YAML
 _BOOL_TAG = "tag:yaml.org,2002:bool"
 _FLOAT_TAG = "tag:yaml.org,2002:float"
-_FLOAT_RE = re.compile(
-    r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
-    |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
-    |[-+]?\.[0-9_]+(?:[eE][-+]?[0-9]+)?
-    |[-+]?\.(?:inf|Inf|INF)
-    |\.(?:nan|NaN|NAN))$""",
-    re.VERBOSE,
-)
 
 
 class _Loader(yaml.SafeLoader):
@@ -122,7 +108,7 @@ _Loader.yaml_implicit_resolvers = {
     for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
 }
 _Loader.add_implicit_resolver(_BOOL_TAG, re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF"))
-_Loader.add_implicit_resolver(_FLOAT_TAG, _FLOAT_RE, list("-+0123456789."))
+_Loader.add_implicit_resolver(_FLOAT_TAG, V.YAML_FLOAT, list("-+0123456789."))
 
 
 def _yaml_load(text: str, where: str):
@@ -133,145 +119,76 @@ def _yaml_load(text: str, where: str):
 
 
 # --------------------------------------------------------------------------------------------- converters
-# A converter ``conv(value, path) -> normalised value`` checks one field and returns it with lists as tuples
-# and nested sections as their dataclasses; it accepts its own output, so normalising twice is harmless.
+# A converter ``conv(value, path) -> normalised value`` checks one field through ``scg_jax.validation`` and returns
+# it with lists as tuples and nested sections as their dataclasses; it accepts its own output, so normalising twice
+# is harmless. Numbers written as YAML 1.1 strings (``1e-3`` from a plain ``yaml.safe_load``) are read as numbers.
 _Converter = Callable[[Any, str], Any]
+_YAML = {"yaml_strings": True}
 
 
-def _show(value) -> str:
-    text = repr(value)
-    return text if len(text) <= 80 else text[:77] + "..."
+def _number(value, path, allow_inf=False):
+    return V.number(value, path, allow_inf=allow_inf, **_YAML)
 
 
-def _join(path: str, key) -> str:
-    return f"{path}.{key}" if path else str(key)
+def _numbers(length: int | None = None, allow_inf: bool = False) -> _Converter:
+    """A list of numbers (of ``length`` numbers when given), as a tuple."""
+    return lambda value, path: tuple(V.vector(value, path, length, allow_inf=allow_inf, **_YAML).tolist())
 
 
-def _unwrap(value):
-    """numpy arrays and scalars to Python lists and numbers (so configs built in Python may use them)."""
-    if isinstance(value, np.ndarray | np.generic):
-        return value.tolist()
-    return value
+def _number_or_numbers(allow_inf: bool = False) -> _Converter:
+    def conv(value, path):
+        array = V.vector(value, path, broadcast=True, allow_inf=allow_inf, **_YAML)
+        return float(array) if array.ndim == 0 else tuple(array.tolist())
+
+    return conv
 
 
-def _is_sequence(value) -> bool:
-    return isinstance(value, list | tuple)
+def _rows(value, path):
+    """A non-empty list of equal-length lists of numbers (a matrix), as a tuple of tuples."""
+    return tuple(tuple(row) for row in V.matrix(value, path, **_YAML).tolist())
 
 
-def _is_number(value) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+def _vector_or_matrix(value, path):
+    """A list of numbers or a list of equal-length lists of numbers."""
+    if V.is_sequence(value) and len(value) and V.is_sequence(value[0]):
+        return _rows(value, path)
+    if V.is_sequence(value):
+        return _numbers()(value, path)
+    raise ConfigError(
+        path, f"expected a list of numbers or a list of equal-length lists of numbers, got {V.show(value)}"
+    )
 
 
-def _integer(value, path):
-    value = _unwrap(value)
-    if isinstance(value, numbers.Integral) and not isinstance(value, bool):
-        return int(value)
-    raise ConfigError(path, f"expected an integer, got {_show(value)}")
+def _integers(value, path):
+    if not V.is_sequence(value):
+        raise ConfigError(path, f"expected a list of integers, got {V.show(value)}")
+    return tuple(V.integer(item, V.join(path, i)) for i, item in enumerate(value))
 
 
-def _number(value, path):
-    value = _unwrap(value)
-    if _is_number(value):
-        return float(value)
-    if isinstance(value, str) and _FLOAT_RE.match(value):  # e.g. "1e-3" from a YAML 1.1 reader (yaml.safe_load)
-        return float(value.replace("_", "").lower().replace(".inf", "inf").replace(".nan", "nan"))
-    raise ConfigError(path, f"expected a number, got {_show(value)}")
-
-
-def _boolean(value, path):
-    value = _unwrap(value)
-    if isinstance(value, bool):
-        return value
-    raise ConfigError(path, f"expected true or false, got {_show(value)}")
-
-
-def _string(value, path):
-    if isinstance(value, str):
-        return value
-    raise ConfigError(path, f"expected a string, got {_show(value)}")
+def _start_step(value, path):
+    return value if value == "random" else V.integer(value, path, minimum=0)
 
 
 def _choice(allowed) -> _Converter:
     allowed = tuple(allowed)
 
     def conv(value, path):
-        if isinstance(value, str) and value in allowed:
-            return value
-        if isinstance(value, str):
-            raise ConfigError(path, f"unknown value {value!r}; allowed values are {', '.join(allowed)}")
-        raise ConfigError(path, f"expected one of {', '.join(allowed)}, got {_show(value)}")
+        return V.name(value, path, allowed)
 
     conv.allowed = allowed
     return conv
 
 
-def _numbers(length: int | None = None) -> _Converter:
-    """A list of numbers (of ``length`` numbers when given)."""
-    what = "a list of numbers" if length is None else f"a list of {length} numbers"
-
-    def conv(value, path):
-        value = _unwrap(value)
-        if not _is_sequence(value):
-            raise ConfigError(path, f"expected {what}, got {_show(value)}")
-        if length is not None and len(value) != length:
-            raise ConfigError(path, f"expected {what}, got {len(value)}: {_show(list(value))}")
-        return tuple(_number(item, f"{path}[{i}]") for i, item in enumerate(value))
-
-    return conv
+_PLANES = tuple(a + b for a in "xyz" for b in "xyz" if a != b)
 
 
-_vector = _numbers()
-
-
-def _number_or_numbers(value, path):
-    value = _unwrap(value)
-    if _is_number(value):
-        return float(value)
-    if _is_sequence(value):
-        return _vector(value, path)
-    raise ConfigError(path, f"expected a number or a list of numbers, got {_show(value)}")
-
-
-def _rows(value, path):
-    """A non-empty list of equal-length lists of numbers (a matrix)."""
-    value = _unwrap(value)
-    if not (_is_sequence(value) and value and all(_is_sequence(_unwrap(row)) for row in value)):
-        raise ConfigError(path, f"expected a matrix (a list of equal-length lists of numbers), got {_show(value)}")
-    rows = tuple(_vector(row, f"{path}[{i}]") for i, row in enumerate(value))
-    lengths = sorted({len(row) for row in rows})
-    if len(lengths) > 1:
+def _plane(value, path):
+    if value not in _PLANES:
         raise ConfigError(
-            path, f"expected a matrix (a list of equal-length lists of numbers), got rows of lengths {lengths}"
+            path,
+            f"unknown value {V.show(value)}; allowed values are two distinct letters of x, y, z ({', '.join(_PLANES)})",
         )
-    return rows
-
-
-def _vector_or_matrix(value, path):
-    """A list of numbers or a list of equal-length lists of numbers."""
-    value = _unwrap(value)
-    if _is_sequence(value) and value and _is_sequence(_unwrap(value[0])):
-        return _rows(value, path)
-    if _is_sequence(value):
-        return _vector(value, path)
-    raise ConfigError(
-        path, f"expected a list of numbers or a list of equal-length lists of numbers, got {_show(value)}"
-    )
-
-
-def _integers(value, path):
-    value = _unwrap(value)
-    if not _is_sequence(value):
-        raise ConfigError(path, f"expected a list of integers, got {_show(value)}")
-    return tuple(_integer(item, f"{path}[{i}]") for i, item in enumerate(value))
-
-
-def _start_step(value, path):
-    if value == "random":
-        return value
-    value = _unwrap(value)
-    if isinstance(value, numbers.Integral) and not isinstance(value, bool):
-        return int(value)
-    raise ConfigError(path, f"expected a non-negative integer or 'random', got {_show(value)}")
+    return value
 
 
 def _optional(conv: _Converter) -> _Converter:
@@ -284,9 +201,9 @@ def _optional(conv: _Converter) -> _Converter:
 
 def _list_of(conv: _Converter, what: str) -> _Converter:
     def list_of(value, path):
-        if not _is_sequence(value):
-            raise ConfigError(path, f"expected a list of {what}, got {_show(value)}")
-        return tuple(conv(item, f"{path}[{i}]") for i, item in enumerate(value))
+        if not isinstance(value, list | tuple):
+            raise ConfigError(path, f"expected a list of {what}, got {V.show(value)}")
+        return tuple(conv(item, V.join(path, i)) for i, item in enumerate(value))
 
     return list_of
 
@@ -296,15 +213,13 @@ def _mapping_of(value_conv: _Converter, what: str, keys: tuple[str, ...] | None 
 
     def mapping_of(value, path):
         if not isinstance(value, Mapping):
-            raise ConfigError(path, f"expected a mapping of {what}, got {_show(value)}")
-        result = {}
-        for key, item in value.items():
+            raise ConfigError(path, f"expected a mapping of {what}, got {V.show(value)}")
+        for key in value:
             if not isinstance(key, str):
-                raise ConfigError(path, f"expected a mapping of {what} with string keys, got the key {_show(key)}")
-            if keys is not None and key not in keys:
-                raise ConfigError(_join(path, key), f"unknown key; allowed keys are {', '.join(keys)}")
-            result[key] = value_conv(item, _join(path, key))
-        return result
+                raise ConfigError(path, f"expected a mapping of {what} with string keys, got the key {V.show(key)}")
+        if keys is not None:
+            V.check_keys(value, path, keys)
+        return {key: value_conv(item, V.join(path, key)) for key, item in value.items()}
 
     return mapping_of
 
@@ -320,13 +235,12 @@ def _distribution(value, path):
     """A distribution mapping, or a fixed value (a number or a list of numbers)."""
     if isinstance(value, DistributionConfig | Mapping):
         return DistributionConfig.from_dict(value, path)
-    value = _unwrap(value)
-    if _is_number(value) or _is_sequence(value):
-        return _number_or_numbers(value, path)
+    if V.is_number(value) or V.is_sequence(value):
+        return _number_or_numbers()(value, path)
     raise ConfigError(
         path,
         f"expected a distribution (a mapping with type: {', '.join(randomization.DISTRIBUTIONS)}), "
-        f"a number or a list of numbers, got {_show(value)}",
+        f"a number or a list of numbers, got {V.show(value)}",
     )
 
 
@@ -338,7 +252,9 @@ def _plain(value):
         return {key: _plain(item) for key, item in value.items()}
     if isinstance(value, list | tuple):
         return [_plain(item) for item in value]
-    return _unwrap(value)
+    if isinstance(value, np.ndarray | np.generic):
+        return value.tolist()
+    return value
 
 
 # --------------------------------------------------------------------------------------------- sections
@@ -359,12 +275,20 @@ class _Section:
         path = _BUILD_PATH.get()
         path = self._name if path is None else path
         for field in dataclasses.fields(self):
-            value = field.metadata["conv"](getattr(self, field.name), _join(path, field.name))
+            value = field.metadata["conv"](getattr(self, field.name), V.join(path, field.name))
             object.__setattr__(self, field.name, value)
         self._check(path)
 
     def _check(self, path: str) -> None:
         """Checks across fields; overridden by sections that need them."""
+
+    @classmethod
+    def _check_keys(cls, data: Mapping, path: str) -> None:
+        """Key checks before construction; sections with a ``type`` name the keys that type takes."""
+        kinds = getattr(cls, "_type_keys", None)
+        if kinds is not None and isinstance(data.get("type"), str) and data["type"] in kinds:
+            allowed = cls._common_keys + kinds[data["type"]]
+            V.check_keys(data, path, allowed, where=f"for a {data['type']} {cls._name}")
 
     @classmethod
     def keys(cls) -> tuple[str, ...]:
@@ -378,21 +302,16 @@ class _Section:
             return data
         names = cls.keys()
         if not isinstance(data, Mapping):
-            raise ConfigError(path, f"expected a mapping with keys {', '.join(names)}, got {_show(data)}")
-        kwargs = {}
-        for key, value in data.items():
-            if key is True and "on" in names:  # ``on:`` read by a YAML 1.1 parser (plain yaml.safe_load)
-                key = "on"
-            if key not in names:
-                close = difflib.get_close_matches(str(key), names, n=1)
-                hint = f" (did you mean {close[0]!r}?)" if close else ""
-                raise ConfigError(_join(path, key), f"unknown key; allowed keys are {', '.join(names)}{hint}")
-            kwargs[key] = value
+            raise ConfigError(path, f"expected a mapping with keys {', '.join(names)}, got {V.show(data)}")
+        # ``on:`` read by a YAML 1.1 parser (plain yaml.safe_load) is the key True.
+        kwargs = {("on" if key is True and "on" in names else key): value for key, value in data.items()}
+        cls._check_keys(kwargs, path)
+        V.check_keys(kwargs, path, names)
         for field in dataclasses.fields(cls):
             if field.name not in kwargs and field.default is dataclasses.MISSING:
                 allowed = getattr(field.metadata["conv"], "allowed", None)
                 extra = f"; allowed values are {', '.join(allowed)}" if allowed else ""
-                raise ConfigError(_join(path, field.name), f"required{extra}")
+                raise ConfigError(V.join(path, field.name), f"required{extra}")
         token = _BUILD_PATH.set(path)
         try:
             return cls(**kwargs)
@@ -410,6 +329,16 @@ class _Section:
         return result
 
 
+def _check_type_keys(section, path: str, what: str, common, keys, required=None) -> None:
+    """The keys set in ``section`` are ones its ``type`` takes, and those it requires are set."""
+    allowed = tuple(common) + tuple(keys)
+    given = {field.name: None for field in dataclasses.fields(section) if getattr(section, field.name) is not None}
+    V.check_keys(given, path, allowed, where=f"for a {section.type} {what}")
+    for key in keys if required is None else required:
+        if getattr(section, key) is None:
+            raise ConfigError(V.join(path, key), f"required for a {section.type} {what}")
+
+
 @dataclasses.dataclass(frozen=True)
 class TrajectoryConfig(_Section):
     """Tracking reference (``make``'s ``trajectory``); a field left ``None`` takes the system's default."""
@@ -418,7 +347,7 @@ class TrajectoryConfig(_Section):
 
     shape: str | None = _field(_optional(_choice(trajectories.SHAPES)), None)
     num_cycles: float | None = _field(_optional(_number), None)
-    plane: str | None = _field(_optional(_string), None)
+    plane: str | None = _field(_optional(_plane), None)
     offset: tuple[float, float] | None = _field(_optional(_numbers(2)), None)
     scale: float | None = _field(_optional(_number), None)
 
@@ -429,14 +358,20 @@ class DistributionConfig(_Section):
     truncation low, high) or ``choice`` (values); ``relative`` for physical parameters only."""
 
     _name: ClassVar[str] = "distribution"
+    _common_keys: ClassVar[tuple] = ("type", "relative")
+    _type_keys: ClassVar[dict] = randomization._KEYS
 
     type: str = _field(_choice(randomization.DISTRIBUTIONS))
-    low: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
-    high: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
-    mean: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
-    std: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+    low: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers(allow_inf=True)), None)
+    high: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers(allow_inf=True)), None)
+    mean: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers()), None)
+    std: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers()), None)
     values: tuple | None = _field(_optional(_vector_or_matrix), None)
-    relative: bool | None = _field(_optional(_boolean), None)
+    relative: bool | None = _field(_optional(V.boolean), None)
+
+    def _check(self, path: str) -> None:
+        required = {"uniform": ("low", "high"), "normal": ("mean", "std"), "choice": ("values",)}[self.type]
+        _check_type_keys(self, path, "distribution", ("type", "relative"), randomization._KEYS[self.type], required)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -445,23 +380,23 @@ class ConstraintConfig(_Section):
     requires are checked here)."""
 
     _name: ClassVar[str] = "constraint"
+    _common_keys: ClassVar[tuple] = constraints_lib._COMMON_KEYS
+    _type_keys: ClassVar[dict] = constraints_lib._KEYS
 
     type: str = _field(_choice(constraints_lib.CONSTRAINT_TYPES))
     on: str | None = _field(_optional(_choice(constraints_lib.CONSTRAINT_VARIABLES)), None)
     active_dims: tuple[int, ...] | None = _field(_optional(_integers), None)
-    strict: bool | None = _field(_optional(_boolean), None)
+    strict: bool | None = _field(_optional(V.boolean), None)
     tolerance: float | None = _field(_optional(_number), None)
-    low: tuple[float, ...] | None = _field(_optional(_vector), None)
-    high: tuple[float, ...] | None = _field(_optional(_vector), None)
-    bound: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+    low: tuple[float, ...] | None = _field(_optional(_numbers(allow_inf=True)), None)
+    high: tuple[float, ...] | None = _field(_optional(_numbers(allow_inf=True)), None)
+    bound: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers(allow_inf=True)), None)
     A: tuple[tuple[float, ...], ...] | None = _field(_optional(_rows), None)
-    b: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+    b: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers(allow_inf=True)), None)
     P: tuple[tuple[float, ...], ...] | None = _field(_optional(_rows), None)
 
     def _check(self, path: str) -> None:
-        for key in constraints_lib._KEYS[self.type]:
-            if getattr(self, key) is None:
-                raise ConfigError(_join(path, key), f"required for a {self.type} constraint")
+        _check_type_keys(self, path, "constraint", constraints_lib._COMMON_KEYS, constraints_lib._KEYS[self.type])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -469,25 +404,29 @@ class DisturbanceConfig(_Section):
     """A disturbance of ``scg_jax.disturbances``; which keys a type takes and requires is checked by ``make``."""
 
     _name: ClassVar[str] = "disturbance"
+    _common_keys: ClassVar[tuple] = ("type", "mask")
+    _type_keys: ClassVar[dict] = disturbances_lib._KEYS
 
     type: str = _field(_choice(disturbances_lib.DISTURBANCE_TYPES))
-    mask: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
-    std: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
-    low: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
-    high: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
-    magnitude: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+    mask: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers()), None)
+    std: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers()), None)
+    low: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers()), None)
+    high: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers()), None)
+    magnitude: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers()), None)
     start_step: int | str | None = _field(_optional(_start_step), None)
-    duration: int | None = _field(_optional(_integer), None)
+    duration: int | None = _field(_optional(V.integer), None)
     decay: float | None = _field(_optional(_number), None)
-    scale: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+    scale: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers()), None)
     frequency: float | None = _field(_optional(_number), None)
 
     def _check(self, path: str) -> None:
+        required = tuple(key for key in disturbances_lib._KEYS[self.type] if key not in disturbances_lib._DEFAULTS)
+        _check_type_keys(self, path, "disturbance", ("type", "mask"), disturbances_lib._KEYS[self.type], required)
         if self.start_step == "random" and self.type != "impulse":
             raise ConfigError(
-                _join(path, "start_step"),
-                f"'random' is only allowed for an impulse disturbance; expected a non-negative integer for a "
-                f"{self.type} disturbance",
+                V.join(path, "start_step"),
+                f"expected a non-negative integer, got 'random' ('random' is only allowed for an impulse "
+                f"disturbance, not a {self.type} one)",
             )
 
 
@@ -498,7 +437,7 @@ class AdversaryConfig(_Section):
     _name: ClassVar[str] = "adversary"
 
     channel: str = _field(_choice(disturbances_lib.CHANNELS))
-    scale: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers), None)
+    scale: float | tuple[float, ...] | None = _field(_optional(_number_or_numbers()), None)
 
 
 def _option(name: str, conv: _Converter):
@@ -522,30 +461,30 @@ class EnvConfig(_Section):
 
     system: str = _field(_choice(SYSTEMS))
     task: str = _field(_choice(TASKS), _TASK_DEFAULT)
-    ctrl_freq: int = _option("ctrl_freq", _integer)
-    physics_freq: int = _option("physics_freq", _integer)
+    ctrl_freq: int = _option("ctrl_freq", V.integer)
+    physics_freq: int = _option("physics_freq", V.integer)
     episode_len_sec: float = _option("episode_len_sec", _number)
     integrator: str = _option("integrator", _choice(INTEGRATORS))
     action_mode: str = _option("action_mode", _choice(ACTION_MODES))
     reward_type: str = _option("reward_type", _choice(REWARD_TYPES))
-    obs_goal_horizon: int = _option("obs_goal_horizon", _integer)
-    done_on_out_of_bounds: bool = _option("done_on_out_of_bounds", _boolean)
-    done_on_goal: bool = _option("done_on_goal", _boolean)
+    obs_goal_horizon: int = _option("obs_goal_horizon", V.integer)
+    done_on_out_of_bounds: bool = _option("done_on_out_of_bounds", V.boolean)
+    done_on_goal: bool = _option("done_on_goal", V.boolean)
     trajectory: TrajectoryConfig | None = _option("trajectory", _section(TrajectoryConfig))
     physics: dict[str, float] | None = _option("physics", _mapping_of(_number, "parameter names to numbers"))
     Q: tuple | None = _option("Q", _vector_or_matrix)
     R: tuple | None = _option("R", _vector_or_matrix)
-    goal: tuple[float, ...] | None = _option("goal", _vector)
+    goal: tuple[float, ...] | None = _option("goal", _numbers())
     goal_tolerance: float = _option("goal_tolerance", _number)
     init_state: DistributionConfig | float | tuple[float, ...] | None = _option("init_state", _distribution)
     physics_randomization: dict[str, DistributionConfig | float] | None = _option(
         "physics_randomization", _mapping_of(_distribution, "parameter names to distributions")
     )
-    mse_weight: tuple[float, ...] | None = _option("mse_weight", _vector)
+    mse_weight: tuple[float, ...] | None = _option("mse_weight", _numbers())
     constraints: tuple[ConstraintConfig, ...] | None = _option(
         "constraints", _list_of(_section(ConstraintConfig), "constraint mappings")
     )
-    done_on_violation: bool = _option("done_on_violation", _boolean)
+    done_on_violation: bool = _option("done_on_violation", V.boolean)
     violation_penalty: float = _option("violation_penalty", _number)
     disturbances: dict[str, tuple[DisturbanceConfig, ...]] | None = _option(
         "disturbances",
@@ -577,10 +516,10 @@ def _options_mapping(value, path):
     if value is None:
         return {}
     if not isinstance(value, Mapping):
-        raise ConfigError(path, f"expected a mapping of option names to values, got {_show(value)}")
+        raise ConfigError(path, f"expected a mapping of option names to values, got {V.show(value)}")
     for key in value:
         if not isinstance(key, str):
-            raise ConfigError(path, f"expected option names (strings), got the key {_show(key)}")
+            raise ConfigError(path, f"expected option names (strings), got the key {V.show(key)}")
     return {key: _plain(item) for key, item in value.items()}
 
 
@@ -629,9 +568,14 @@ def _format_path(tokens) -> str:
 
 def _parse_override(text) -> tuple[list, Any]:
     if not isinstance(text, str) or "=" not in text:
-        raise ConfigError("", f"override {_show(text)}: expected dotted.key=value, {_OVERRIDE_EXAMPLE}")
+        raise ConfigError("", f"override {V.show(text)}: expected dotted.key=value, {_OVERRIDE_EXAMPLE}")
     key, _, raw = text.partition("=")
-    key = key.strip()
+    return _parse_key(key.strip(), text), _yaml_load(raw, f"override {text!r}")
+
+
+def _parse_key(key: str, text: str) -> list:
+    """``"env.constraints[0].bound"`` -> ``["env", "constraints", 0, "bound"]``; ``text`` is the override quoted in
+    messages."""
     tokens: list = []
     for part in key.split("."):
         match = _PART_RE.fullmatch(part)
@@ -643,7 +587,7 @@ def _parse_override(text) -> tuple[list, Any]:
             )
         tokens.append(match.group(1))
         tokens.extend(int(index) for index in re.findall(r"\[([0-9]+)\]", match.group(2)))
-    return tokens, _yaml_load(raw, f"override {text!r}")
+    return tokens
 
 
 def _set_path(data: dict, tokens: list, value, text: str) -> None:
@@ -654,7 +598,7 @@ def _set_path(data: dict, tokens: list, value, text: str) -> None:
         if isinstance(token, str):
             if not isinstance(node, dict):
                 raise ConfigError(
-                    where, f"is {_show(node)}, not a mapping, so {token!r} cannot be set in it (override {text!r})"
+                    where, f"is {V.show(node)}, not a mapping, so {token!r} cannot be set in it (override {text!r})"
                 )
             if last:
                 node[token] = value
@@ -663,7 +607,7 @@ def _set_path(data: dict, tokens: list, value, text: str) -> None:
         else:
             if not isinstance(node, list):
                 raise ConfigError(
-                    where, f"is {_show(node)}, not a list, so [{token}] cannot be set in it (override {text!r})"
+                    where, f"is {V.show(node)}, not a list, so [{token}] cannot be set in it (override {text!r})"
                 )
             if token >= len(node):
                 raise ConfigError(
@@ -714,7 +658,7 @@ def _read(source) -> tuple[Any, str | None]:
     )
 
 
-def load_config(source, overrides: Iterable[str] = ()) -> Config:
+def load_config(source, overrides: Iterable[str] = (), values: Mapping[str, Any] | None = None) -> Config:
     """Read a configuration and check it.
 
     Args:
@@ -724,6 +668,8 @@ def load_config(source, overrides: Iterable[str] = ()) -> Config:
             ``env.ctrl_freq=15``, ``env.trajectory.shape=figure8``,
             ``env.disturbances.action=[{type: white_noise, std: 0.1}]`` and ``env.constraints[0].bound=0.5``
             work. Missing mappings on the way are created; list indices must exist.
+        values: ``{"dotted.key": value}`` with Python values (no YAML text), set before the overrides; ``None``
+            values are skipped. The CLI sets its flags this way (``{"env.ctrl_freq": 15}``).
 
     Returns:
         the checked ``Config``.
@@ -737,14 +683,16 @@ def load_config(source, overrides: Iterable[str] = ()) -> Config:
     data, name = _read(source)
     data = _mutable_copy(data)
     applied = []
-    for text in overrides:
-        tokens, value = _parse_override(text)
+    settings = [(_parse_key(key, key), value, key, False) for key, value in (values or {}).items() if value is not None]
+    settings += [(*_parse_override(text), text, True) for text in overrides]
+    for tokens, value, text, is_override in settings:
         if data is None:
             data = {}
         if not isinstance(data, dict):
-            raise ConfigError("", f"expected a mapping at the top level to apply override {text!r}, got {_show(data)}")
-        _set_path(data, tokens, value, text)
-        applied.append((_format_path(tokens), text))
+            raise ConfigError("", f"expected a mapping at the top level to apply override {text!r}, got {V.show(data)}")
+        _set_path(data, tokens, _mutable_copy(value), text)
+        if is_override:
+            applied.append((_format_path(tokens), text))
     try:
         return Config.from_dict(data)
     except ConfigError as err:
@@ -766,15 +714,12 @@ def dump_config(cfg: Config, path: str | os.PathLike | None = None) -> str:
     return text
 
 
-_MESSAGE_PATH_RE = re.compile(r"([A-Za-z_][A-Za-z0-9_]*(?:\[[0-9]+\]|\.[A-Za-z_][A-Za-z0-9_]*)*): (.*)", re.DOTALL)
-
-
 def make_from_config(cfg: Config | EnvConfig) -> tuple[Env, EnvParams]:
-    """``make(cfg.env.system, cfg.env.task, **options)`` and its ``default_params``.
+    """``make(cfg.env)`` and its ``default_params``.
 
     Raises:
-        ConfigError (a ValueError): ``make``'s message with the full dotted path, e.g.
-            ``env.constraints[1].type: unknown value ...`` or ``env.physics.pole_mass: must be positive ...``.
+        ConfigError (a ValueError): with the full dotted path, e.g. ``env.constraints[1].bound: ...`` or
+            ``env.physics.pole_mass: must be a positive finite number ...``.
     """
     if isinstance(cfg, Config):
         env_cfg = cfg.env
@@ -783,15 +728,7 @@ def make_from_config(cfg: Config | EnvConfig) -> tuple[Env, EnvParams]:
     else:
         raise TypeError(f"make_from_config: expected a Config or an EnvConfig, got {type(cfg).__name__}")
     try:
-        env = make(env_cfg.system, env_cfg.task, **env_cfg.make_options())
-    except ValueError as err:
-        message = str(err)
-        match = _MESSAGE_PATH_RE.fullmatch(message)
-        if match is None:
-            raise ConfigError("env", message) from err
-        path, reason = match.groups()
-        system_params = f"{env_cfg.system}.params."
-        if path.startswith(system_params):  # the system's own parameter checks name Params fields
-            path = "physics." + path[len(system_params) :]
-        raise ConfigError(f"env.{path}", reason) from err
+        env = make(env_cfg)
+    except ConfigError as err:  # make's paths are relative to the env section
+        raise err.within("env") from None
     return env, env.default_params

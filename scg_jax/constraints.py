@@ -23,7 +23,9 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
+from scg_jax import validation as V
 from scg_jax._pytree import pytree_dataclass
+from scg_jax.validation import FieldError
 
 CONSTRAINT_TYPES = ("bounded", "abs_bound", "linear", "quadratic", "default")
 CONSTRAINT_VARIABLES = ("state", "input", "input_and_state")
@@ -67,99 +69,61 @@ class QuadraticConstraintParams:
     tolerance: object
 
 
-def _matrix(path: str, value, shape) -> np.ndarray:
-    try:
-        array = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{path}: expected numbers of shape {shape}, got {value!r}") from None
-    if array.shape != shape:
-        raise ValueError(f"{path}: expected shape {shape}, got {array.shape}")
-    if np.any(np.isnan(array)):
-        raise ValueError(f"{path}: values must not be NaN")
-    return array
-
-
-def parse_constraint(path: str, raw: dict, system, state_bounds, input_bounds):
-    """Validate one constraint option and return ``(ConstraintSpec, default params as numpy)``.
+def parse_constraint(path: str, c, system, state_bounds, input_bounds):
+    """Check one constraint against the system; return ``(ConstraintSpec, default params as numpy)``.
 
     Args:
         path: dotted name for error messages, e.g. ``"constraints[1]"``.
-        raw: the option dict. system: the ``System``. state_bounds, input_bounds: ``(low, high)`` numpy pairs.
+        c: a ``scg_jax.config.ConstraintConfig`` (its type, keys and value types are already checked).
+        system: the ``System``. state_bounds, input_bounds: ``(low, high)`` numpy pairs.
+
+    Raises:
+        scg_jax.validation.FieldError: naming ``path.<key>``.
     """
-    if not isinstance(raw, dict):
-        raise ValueError(f"{path}: expected a mapping with a 'type' key, got {raw!r}")
-    kind = raw.get("type")
-    if kind not in CONSTRAINT_TYPES:
-        raise ValueError(f"{path}.type: unknown value {kind!r}; allowed values are {', '.join(CONSTRAINT_TYPES)}")
-    allowed = _COMMON_KEYS + _KEYS[kind]
-    for key in raw:
-        if key not in allowed:
-            raise ValueError(
-                f"{path}.{key}: unknown key for a {kind} constraint; allowed keys are {', '.join(allowed)}"
-            )
-    on = raw.get("on", "state")
-    if on not in CONSTRAINT_VARIABLES:
-        raise ValueError(f"{path}.on: unknown value {on!r}; allowed values are {', '.join(CONSTRAINT_VARIABLES)}")
+    kind = c.type
+    on = c.on or "state"
     size = {"state": system.nx, "input": system.nu, "input_and_state": system.nx + system.nu}[on]
-    dims = raw.get("active_dims")
-    dims = tuple(range(size)) if dims is None else tuple(dims)
-    if (
-        not dims
-        or any((not isinstance(d, int | np.integer)) or d < 0 or d >= size for d in dims)
-        or len(set(dims)) != len(dims)
-    ):
-        raise ValueError(
-            f"{path}.active_dims: expected distinct integers in [0, {size}), got {raw.get('active_dims')!r}"
+    dims = tuple(range(size)) if c.active_dims is None else tuple(c.active_dims)
+    if not dims or any(not 0 <= d < size for d in dims) or len(set(dims)) != len(dims):
+        raise FieldError(
+            f"{path}.active_dims", f"expected distinct integers in [0, {size}) ({on} has {size}), got {list(dims)}"
         )
     d = len(dims)
-    tolerance = float(raw.get("tolerance", 0.0))
-    if not np.isfinite(tolerance):
-        raise ValueError(f"{path}.tolerance: must be finite, got {raw.get('tolerance')!r}")
-    strict = raw.get("strict", False)
-    if not isinstance(strict, bool):
-        raise ValueError(f"{path}.strict: expected true or false, got {strict!r}")
+    tolerance = np.asarray(0.0 if c.tolerance is None else V.number(c.tolerance, f"{path}.tolerance"))
+    strict = bool(c.strict)
 
-    for key in _KEYS[kind]:
-        if key not in raw:
-            raise ValueError(f"{path}.{key}: required for a {kind} constraint")
     if kind == "quadratic":
-        P = _matrix(f"{path}.P", raw["P"], (d, d))
-        b = _matrix(f"{path}.b", raw["b"], ())
+        P = V.matrix(c.P, f"{path}.P", d, d)
+        b = np.asarray(V.number(c.b, f"{path}.b"))
         spec = ConstraintSpec(kind, on, dims, strict, "quadratic", 1)
-        return spec, {"P": P, "b": b, "tolerance": np.asarray(tolerance)}
+        return spec, {"P": P, "b": b, "tolerance": tolerance}
     if kind == "linear":
-        try:
-            A = np.asarray(raw["A"], dtype=float)
-        except (TypeError, ValueError):
-            raise ValueError(f"{path}.A: expected a matrix of numbers of shape (rows, {d}), got {raw['A']!r}") from None
-        if A.ndim != 2 or A.shape[1] != d:
-            raise ValueError(f"{path}.A: expected shape (rows, {d}), got {A.shape}")
-        b = _matrix(f"{path}.b", raw.get("b"), (A.shape[0],))
+        A = V.matrix(c.A, f"{path}.A", cols=d)
+        b = V.vector(c.b, f"{path}.b", A.shape[0], broadcast=True, allow_inf=True)
     else:
         if kind == "bounded":
-            low = _matrix(f"{path}.low", raw["low"], (d,))
-            high = _matrix(f"{path}.high", raw["high"], (d,))
+            low = V.vector(c.low, f"{path}.low", d, allow_inf=True)
+            high = V.vector(c.high, f"{path}.high", d, allow_inf=True)
         elif kind == "abs_bound":
-            bound = np.asarray(raw["bound"], dtype=float)
-            bound = _matrix(f"{path}.bound", np.full(d, bound) if bound.ndim == 0 else bound, (d,))
+            bound = V.vector(c.bound, f"{path}.bound", d, broadcast=True, allow_inf=True)
             if np.any(bound < 0):
-                raise ValueError(f"{path}.bound: must be non-negative, got {np.asarray(raw.get('bound')).tolist()!r}")
+                raise FieldError(f"{path}.bound", f"must be >= 0, got {V.show(c.bound)}")
             low, high = -bound, bound
         else:
             both = tuple(np.concatenate(pair) for pair in zip(state_bounds, input_bounds, strict=True))
             bounds = {"state": state_bounds, "input": input_bounds, "input_and_state": both}[on]
             low, high = (np.asarray(bound, dtype=float)[list(dims)] for bound in bounds)
         if np.any(low > high):
-            raise ValueError(f"{path}: low must not exceed high, got {low.tolist()} and {high.tolist()}")
+            raise FieldError(f"{path}.low", f"must not exceed high, got {low.tolist()} and {high.tolist()}")
         eye = np.eye(d)
         A = np.concatenate([eye, -eye])
         b = np.concatenate([high, -low])
         finite = np.isfinite(b)
         A, b = A[finite], b[finite]
         if A.shape[0] == 0:
-            raise ValueError(f"{path}: every bound is infinite, so the constraint has no row")
+            raise FieldError(path, "every bound is infinite, so the constraint has no row")
     spec = ConstraintSpec(kind, on, dims, strict, "linear", A.shape[0])
-    return spec, {"A": A, "b": b, "tolerance": np.asarray(tolerance)}
+    return spec, {"A": A, "b": b, "tolerance": tolerance}
 
 
 def params_from_numpy(spec: ConstraintSpec, values: dict, as_array):

@@ -31,7 +31,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from scg_jax import validation as V
 from scg_jax._pytree import pytree_dataclass
+from scg_jax.validation import FieldError
 
 CHANNELS = ("action", "observation", "dynamics")
 DISTURBANCE_TYPES = ("white_noise", "uniform", "step", "impulse", "periodic")
@@ -79,37 +81,18 @@ class DisturbanceState:
     start: object
 
 
-def channel_vector(path: str, value, dim: int) -> np.ndarray:
-    """A number (broadcast) or ``dim`` finite values, for a per-dimension channel quantity; ValueError naming
-    ``path`` otherwise."""
-    array = (
-        np.broadcast_to(np.asarray(value, dtype=float), (dim,))
-        if np.ndim(value) == 0
-        else np.asarray(value, dtype=float)
-    )
-    if array.shape != (dim,):
-        raise ValueError(f"{path}: expected a number or {dim} values, got shape {array.shape}")
-    if not np.all(np.isfinite(array)):
-        raise ValueError(f"{path}: values must be finite, got {array.tolist()!r}")
-    return np.array(array)
+def parse_disturbance(path: str, d, channel: str, dim: int, num_steps: int):
+    """Check one disturbance against its channel; return ``(DisturbanceSpec, dict of numpy defaults)``.
 
+    Args:
+        path: dotted name for messages (``"disturbances.action[0]"``). d: a ``scg_jax.config.DisturbanceConfig``
+            (type, keys and value types already checked). channel, dim: the channel and its dimension.
+        num_steps: control steps per episode (an impulse's duration must fit).
 
-def parse_disturbance(path: str, raw: dict, channel: str, dim: int, num_steps: int):
-    """Validate one disturbance option; return ``(DisturbanceSpec, dict of numpy defaults)``."""
-    if not isinstance(raw, dict):
-        raise ValueError(f"{path}: expected a mapping with a 'type' key, got {raw!r}")
-    kind = raw.get("type")
-    if kind not in DISTURBANCE_TYPES:
-        raise ValueError(f"{path}.type: unknown value {kind!r}; allowed values are {', '.join(DISTURBANCE_TYPES)}")
-    allowed = ("type", "mask") + _KEYS[kind]
-    for key in raw:
-        if key not in allowed:
-            raise ValueError(
-                f"{path}.{key}: unknown key for a {kind} disturbance; allowed keys are {', '.join(allowed)}"
-            )
-    for key in _KEYS[kind]:
-        if key not in raw and key not in _DEFAULTS:
-            raise ValueError(f"{path}.{key}: required for a {kind} disturbance")
+    Raises:
+        scg_jax.validation.FieldError: naming ``path.<key>``.
+    """
+    kind = d.type
     values = {name: np.zeros(dim) for name in ("std", "low", "high", "magnitude", "scale")}
     values.update(
         start_step=np.asarray(0, np.int32),
@@ -117,45 +100,35 @@ def parse_disturbance(path: str, raw: dict, channel: str, dim: int, num_steps: i
         decay=np.asarray(1.0),
         frequency=np.asarray(0.0),
     )
-    values["mask"] = channel_vector(f"{path}.mask", raw.get("mask", 1.0), dim)
+    values["mask"] = V.vector(1.0 if d.mask is None else d.mask, f"{path}.mask", dim, broadcast=True)
     random_start = False
     for key in _KEYS[kind]:
-        value = raw.get(key, _DEFAULTS.get(key))
+        value = getattr(d, key)
+        value = _DEFAULTS.get(key) if value is None else value
+        at = f"{path}.{key}"
         if key == "start_step":
-            if kind == "impulse" and value == "random":
-                random_start = True
-                continue
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, int | float)
-                or not float(value).is_integer()
-                or value < 0
-            ):
-                allowed_text = "a non-negative integer or 'random'" if kind == "impulse" else "a non-negative integer"
-                raise ValueError(f"{path}.start_step: expected {allowed_text}, got {value!r}")
-            values[key] = np.asarray(int(value), np.int32)
+            random_start = value == "random"  # only impulses may say so (checked with the config)
+            if not random_start:
+                values[key] = np.asarray(V.integer(value, at, minimum=0), np.int32)
         elif key == "duration":
-            valid = isinstance(value, int | float) and not isinstance(value, bool) and float(value).is_integer()
-            if not valid or not 1 <= value <= num_steps:
-                raise ValueError(
-                    f"{path}.duration: expected an integer number of steps in [1, {num_steps}], got {value!r}"
-                )
-            values[key] = np.asarray(int(value), np.int32)
+            if not 1 <= value <= num_steps:
+                raise FieldError(at, f"expected an integer number of steps in [1, {num_steps}], got {value!r}")
+            values[key] = np.asarray(value, np.int32)
         elif key == "decay":
-            if not 0.0 < float(value) <= 1.0:
-                raise ValueError(f"{path}.decay: expected a factor per step in (0, 1], got {value!r}")
-            values[key] = np.asarray(float(value))
+            if not 0.0 < value <= 1.0:
+                raise FieldError(at, f"expected a factor per step in (0, 1], got {value!r}")
+            values[key] = np.asarray(value)
         elif key == "frequency":
-            if not float(value) > 0.0:
-                raise ValueError(f"{path}.frequency: expected a positive frequency in Hz, got {value!r}")
-            values[key] = np.asarray(float(value))
+            if not value > 0.0:
+                raise FieldError(at, f"expected a positive frequency in Hz, got {value!r}")
+            values[key] = np.asarray(value)
         else:
-            values[key] = channel_vector(f"{path}.{key}", value, dim)
+            values[key] = V.vector(value, at, dim, broadcast=True)
     if kind == "white_noise" and np.any(values["std"] < 0):
-        raise ValueError(f"{path}.std: must be non-negative, got {values['std'].tolist()!r}")
+        raise FieldError(f"{path}.std", f"must be >= 0, got {V.show(d.std)}")
     if kind == "uniform" and np.any(values["low"] > values["high"]):
-        raise ValueError(
-            f"{path}.low: must not exceed high, got {values['low'].tolist()} and {values['high'].tolist()}"
+        raise FieldError(
+            f"{path}.low", f"must not exceed high, got {values['low'].tolist()} and {values['high'].tolist()}"
         )
     return DisturbanceSpec(kind, channel, dim, random_start), values
 

@@ -44,10 +44,12 @@ import numpy as np
 from scg_jax import constraints as constraints_lib
 from scg_jax import disturbances as disturbances_lib
 from scg_jax import randomization, trajectories
+from scg_jax import validation as V
 from scg_jax._pytree import pytree_dataclass
 from scg_jax.backends import jax_backend
-from scg_jax.integrators import INTEGRATORS, make_discrete_dynamics
+from scg_jax.integrators import make_discrete_dynamics
 from scg_jax.systems import System, get_system
+from scg_jax.validation import FieldError
 
 TASKS = ("stabilization", "tracking")
 ACTION_MODES = ("physical", "normalized")
@@ -168,36 +170,16 @@ _OPTION_DEFAULTS = {
 }
 
 
-def _choice(name: str, value, allowed) -> None:
-    if value not in allowed:
-        raise ValueError(f"{name}: unknown value {value!r}; allowed values are {', '.join(map(str, allowed))}")
-
-
-def _vector(name: str, value, n: int) -> np.ndarray:
-    array = np.asarray(value, dtype=float)
-    if array.shape != (n,):
-        raise ValueError(f"{name}: expected {n} values, got shape {array.shape} ({np.asarray(value).tolist()!r})")
-    if not np.all(np.isfinite(array)):
-        raise ValueError(f"{name}: values must be finite, got {array.tolist()!r}")
-    return array
-
-
-def _weight(name: str, value, n: int) -> np.ndarray:
+def _weight(path: str, value, n: int) -> np.ndarray:
     """A cost weight given as its diagonal (n,) or as a full symmetric positive semidefinite (n, n) matrix."""
     array = np.asarray(value, dtype=float)
     if array.shape == (n,):
         array = np.diag(array)
     if array.shape != (n, n):
-        raise ValueError(f"{name}: expected {n} diagonal values or an ({n}, {n}) matrix, got shape {array.shape}")
+        raise FieldError(path, f"expected {n} diagonal values or an ({n}, {n}) matrix, got shape {array.shape}")
     if not np.allclose(array, array.T) or np.linalg.eigvalsh(array).min() < -1e-12:
-        raise ValueError(f"{name}: must be symmetric positive semidefinite")
+        raise FieldError(path, f"must be symmetric positive semidefinite, got {V.show(array)}")
     return array
-
-
-def _positive_int(name: str, value) -> int:
-    if isinstance(value, bool) or not float(value).is_integer() or value <= 0:
-        raise ValueError(f"{name}: must be a positive integer, got {value!r}")
-    return int(value)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -556,11 +538,12 @@ def prior_params(env: Env, params: EnvParams, scale: float = 1.5, fields=None) -
     return params.replace(physics=params.physics.replace(**scaled))
 
 
-def make(system: str, task: str = "stabilization", **options) -> Env:
+def make(system, task: str = "stabilization", **options) -> Env:
     """Build an environment.
 
     Args:
-        system: ``"cartpole"``, ``"quadrotor_1d"``, ``"quadrotor_2d"`` or ``"quadrotor_3d"``.
+        system: ``"cartpole"``, ``"quadrotor_1d"``, ``"quadrotor_2d"`` or ``"quadrotor_3d"``; or a whole
+            ``scg_jax.EnvConfig`` (then no other argument).
         task: ``"stabilization"`` or ``"tracking"``.
         **options:
             ctrl_freq (Hz, default 50), physics_freq (Hz, a multiple of ctrl_freq, default 1000),
@@ -580,158 +563,137 @@ def make(system: str, task: str = "stabilization", **options) -> Env:
             disturbances (``{channel: [disturbance mappings]}``, see ``scg_jax.disturbances``), adversary
             (``{"channel": action|observation|dynamics, "scale": number or (dim,)}``).
 
-    Raises:
-        ValueError: naming the option and the allowed values for anything unknown or inconsistent.
-    """
-    spec = get_system(system)
-    _choice("task", task, TASKS)
-    unknown = sorted(set(options) - set(_OPTION_DEFAULTS))
-    if unknown:
-        raise ValueError(f"{unknown[0]}: unknown option; allowed options are {', '.join(_OPTION_DEFAULTS)}")
-    opts = {**_OPTION_DEFAULTS, **options}
+    The options are read into a typed ``EnvConfig`` (its fields are these options), which checks names, types and
+    structure; ``make`` then checks what depends on the system and on several options together.
 
-    ctrl_freq = _positive_int("ctrl_freq", opts["ctrl_freq"])
-    physics_freq = _positive_int("physics_freq", opts["physics_freq"])
+    Raises:
+        scg_jax.validation.FieldError (a ValueError): ``"<option path>: <what is wrong>; <what is allowed>"``,
+            e.g. ``ctrl_freq: expected an integer, got '50'`` or ``constraints[1].bound: must be >= 0, got -1``.
+    """
+    from scg_jax.config import EnvConfig
+
+    if isinstance(system, EnvConfig):
+        if options or task != "stabilization":
+            raise TypeError("make: pass either an EnvConfig alone or a system name with options, not both")
+        return _make(system)
+    V.check_keys(options, "", _OPTION_DEFAULTS, what="option")
+    return _make(EnvConfig.from_dict({"system": system, "task": task, **options}, ""))
+
+
+def _make(cfg) -> Env:
+    """``make`` of a checked ``EnvConfig``: the checks that need the system or several options; field paths are
+    relative to the config's ``env`` section."""
+    from scg_jax.config import DistributionConfig
+
+    spec = get_system(cfg.system)
+    task = cfg.task
+    ctrl_freq = V.integer(cfg.ctrl_freq, "ctrl_freq", minimum=1)
+    physics_freq = V.integer(cfg.physics_freq, "physics_freq", minimum=1)
     if physics_freq % ctrl_freq:
-        raise ValueError(
-            f"physics_freq: must be a multiple of ctrl_freq ({ctrl_freq} Hz), got {physics_freq} Hz; allowed "
-            f"values are {ctrl_freq}, {2 * ctrl_freq}, {3 * ctrl_freq}, ..."
+        raise FieldError(
+            "physics_freq",
+            f"must be a multiple of ctrl_freq ({ctrl_freq} Hz), got {physics_freq} Hz; allowed values are "
+            f"{ctrl_freq}, {2 * ctrl_freq}, {3 * ctrl_freq}, ...",
         )
-    episode_len_sec = float(opts["episode_len_sec"])
+    episode_len_sec = cfg.episode_len_sec
     steps = episode_len_sec * ctrl_freq
     if episode_len_sec <= 0 or not math.isclose(steps, round(steps), abs_tol=1e-9):
-        raise ValueError(
-            f"episode_len_sec: must be positive and a whole number of control periods (1/{ctrl_freq} s), "
-            f"got {opts['episode_len_sec']!r}"
+        raise FieldError(
+            "episode_len_sec",
+            f"must be positive and a whole number of control periods (1/{ctrl_freq} s), got {episode_len_sec!r}",
         )
-    _choice("integrator", opts["integrator"], INTEGRATORS)
-    _choice("action_mode", opts["action_mode"], ACTION_MODES)
-    _choice("reward_type", opts["reward_type"], REWARD_TYPES)
-    if opts["reward_type"] == "upright" and spec.name != "cartpole":
-        raise ValueError(
-            f"reward_type: 'upright' is only for cartpole; allowed values for {spec.name} are quadratic, exponential"
+    if cfg.reward_type == "upright" and spec.name != "cartpole":
+        raise FieldError(
+            "reward_type", f"'upright' is only for cartpole; allowed values for {spec.name} are quadratic, exponential"
         )
-    horizon = opts["obs_goal_horizon"]
-    if isinstance(horizon, bool) or not float(horizon).is_integer() or horizon < 0:
-        raise ValueError(f"obs_goal_horizon: must be a non-negative integer, got {horizon!r}")
-    if opts["done_on_goal"] and task != "stabilization":
-        raise ValueError("done_on_goal: only allowed with task 'stabilization'")
+    horizon = V.integer(cfg.obs_goal_horizon, "obs_goal_horizon", minimum=0)
+    if cfg.done_on_goal and task != "stabilization":
+        raise FieldError("done_on_goal", "only allowed with task 'stabilization'")
 
-    physics_overrides = dict(opts["physics"] or {})
+    physics_overrides = dict(cfg.physics or {})
     fields = [f.name for f in dataclasses.fields(spec.params_cls)]
-    for name in physics_overrides:
-        if name not in fields:
-            raise ValueError(f"physics.{name}: unknown parameter of {spec.name}; allowed are {', '.join(fields)}")
-    physics = spec.params_cls(**{k: float(v) for k, v in physics_overrides.items()})
+    V.check_keys(physics_overrides, "physics", fields, what="parameter", where=f"of {spec.name}")
+    physics = spec.params_cls(**physics_overrides)
     spec.validate_params(physics)
 
     trajectory = None
     shape = plane = None
     if task == "tracking":
-        given = dict(opts["trajectory"] or {})
-        for name in given:
-            if name not in TRAJECTORY_KEYS:
-                raise ValueError(f"trajectory.{name}: unknown key; allowed keys are {', '.join(TRAJECTORY_KEYS)}")
-        shape = trajectories.check_shape(given.get("shape", "circle"))
-        plane = given.get("plane", spec.default_plane)
-        trajectories.plane_axes(plane)
-        num_cycles = float(given.get("num_cycles", 1))
-        if not num_cycles > 0:
-            raise ValueError(f"trajectory.num_cycles: must be positive, got {given['num_cycles']!r}")
+        given = cfg.trajectory
+
+        def pick(name, default):  # a key left out of the trajectory section takes the system's default
+            value = None if given is None else getattr(given, name)
+            return default if value is None else value
+
+        shape, plane = pick("shape", "circle"), pick("plane", spec.default_plane)
         trajectory = {
-            "scale": float(given.get("scale", spec.default_scale)),
-            "offset": _vector("trajectory.offset", given.get("offset", spec.default_offset), 2),
-            "num_cycles": num_cycles,
+            "scale": pick("scale", spec.default_scale),
+            "offset": V.vector(pick("offset", spec.default_offset), "trajectory.offset", 2),
+            "num_cycles": V.positive(pick("num_cycles", 1.0), "trajectory.num_cycles"),
         }
-    elif opts["trajectory"] is not None:
-        raise ValueError("trajectory: only allowed with task 'tracking'")
+    elif cfg.trajectory is not None:
+        raise FieldError("trajectory", "only allowed with task 'tracking'")
     if trajectory is None:  # unused by stabilization but kept so params have one structure per system
         trajectory = {"scale": spec.default_scale, "offset": np.asarray(spec.default_offset), "num_cycles": 1.0}
 
     nx, nu = spec.nx, spec.nu
-    init_raw = opts["init_state"]
-    if init_raw is None:
-        init_raw = {"type": "uniform", "low": spec.init_low.tolist(), "high": spec.init_high.tolist()}
+    init = cfg.init_state
+    if init is None:
+        init = DistributionConfig(type="uniform", low=spec.init_low.tolist(), high=spec.init_high.tolist())
     init_spec, init_values = randomization.parse_distribution(
-        "init_state", init_raw, (nx,), positive=False, allow_relative=False
+        "init_state", init, (nx,), positive=False, allow_relative=False
     )
-    randomized = opts["physics_randomization"] or {}
-    if not isinstance(randomized, dict):
-        raise ValueError(
-            f"physics_randomization: expected a mapping of parameter names to distributions, got {randomized!r}"
-        )
+    randomized = cfg.physics_randomization or {}
+    V.check_keys(randomized, "physics_randomization", fields, what="parameter", where=f"of {spec.name}")
     physics_specs, physics_values = {}, {}
     for name, raw in randomized.items():
-        if name not in fields:
-            raise ValueError(
-                f"physics_randomization.{name}: unknown parameter of {spec.name}; allowed are {', '.join(fields)}"
-            )
         physics_specs[name], physics_values[name] = randomization.parse_distribution(
             f"physics_randomization.{name}", raw, (), positive=True, allow_relative=True
         )
 
     state_bounds = (spec.state_low, spec.state_high)
     input_bounds = tuple(np.asarray(b, dtype=float) for b in spec.input_bounds(physics))
-    raw_constraints = opts["constraints"] or []
-    if not isinstance(raw_constraints, list | tuple):
-        raise ValueError(f"constraints: expected a list of constraint mappings, got {raw_constraints!r}")
     parsed = [
-        constraints_lib.parse_constraint(f"constraints[{i}]", raw, spec, state_bounds, input_bounds)
-        for i, raw in enumerate(raw_constraints)
+        constraints_lib.parse_constraint(f"constraints[{i}]", c, spec, state_bounds, input_bounds)
+        for i, c in enumerate(cfg.constraints or ())
     ]
     constraint_specs = tuple(p[0] for p in parsed)
-    penalty = float(opts["violation_penalty"])
-    if not (np.isfinite(penalty) and penalty >= 0):
-        raise ValueError(
-            f"violation_penalty: must be a non-negative number (it is subtracted from the reward), "
-            f"got {opts['violation_penalty']!r}"
-        )
+    penalty = cfg.violation_penalty
+    if not penalty >= 0:
+        raise FieldError("violation_penalty", f"must be >= 0 (it is subtracted from the reward), got {penalty:g}")
 
     num_steps = round(steps)
     channel_dims = {"action": nu, "observation": nx, "dynamics": spec.f_ext_dim}
-    raw_disturbances = opts["disturbances"] or {}
-    if not isinstance(raw_disturbances, dict):
-        raise ValueError(f"disturbances: expected a mapping of channel to a list, got {raw_disturbances!r}")
     disturbance_specs, disturbance_values = {}, {}
-    for channel, entries in raw_disturbances.items():
-        _choice("disturbances", channel, disturbances_lib.CHANNELS)
-        if not isinstance(entries, list | tuple):
-            raise ValueError(f"disturbances.{channel}: expected a list of disturbance mappings, got {entries!r}")
+    for channel, entries in (cfg.disturbances or {}).items():
         if not entries:
             continue
         items = [
             disturbances_lib.parse_disturbance(
-                f"disturbances.{channel}[{i}]", raw, channel, channel_dims[channel], num_steps
+                f"disturbances.{channel}[{i}]", d, channel, channel_dims[channel], num_steps
             )
-            for i, raw in enumerate(entries)
+            for i, d in enumerate(entries)
         ]
         disturbance_specs[channel] = tuple(item[0] for item in items)
         disturbance_values[channel] = [item[1] for item in items]
 
-    adversary = opts["adversary"]
+    adversary = cfg.adversary
     adversary_channel, adversary_scale = None, np.zeros(0)
     if adversary is not None:
-        if not isinstance(adversary, dict) or set(adversary) - {"channel", "scale"}:
-            raise ValueError(f"adversary: expected a mapping with keys channel, scale, got {adversary!r}")
-        adversary_channel = adversary.get("channel")
-        _choice("adversary.channel", adversary_channel, disturbances_lib.CHANNELS)
-        adversary_scale = disturbances_lib.channel_vector(
-            "adversary.scale", adversary.get("scale", 1.0), channel_dims[adversary_channel]
-        )
+        adversary_channel = adversary.channel
+        scale = 1.0 if adversary.scale is None else adversary.scale
+        adversary_scale = V.vector(scale, "adversary.scale", channel_dims[adversary_channel], broadcast=True)
 
-    tolerance = float(opts["goal_tolerance"])
-    if not tolerance > 0:
-        raise ValueError(f"goal_tolerance: must be positive, got {opts['goal_tolerance']!r}")
     defaults = {
         "physics": physics,
-        "Q": _weight("Q", spec.q_diag if opts["Q"] is None else opts["Q"], nx),
-        "R": _weight("R", spec.r_diag if opts["R"] is None else opts["R"], nu),
-        "goal": _vector("goal", spec.goal if opts["goal"] is None else opts["goal"], nx),
-        "goal_tolerance": tolerance,
+        "Q": _weight("Q", spec.q_diag if cfg.Q is None else cfg.Q, nx),
+        "R": _weight("R", spec.r_diag if cfg.R is None else cfg.R, nu),
+        "goal": V.vector(spec.goal if cfg.goal is None else cfg.goal, "goal", nx),
+        "goal_tolerance": V.positive(cfg.goal_tolerance, "goal_tolerance"),
         "init_state": init_values,
         "physics_randomization": physics_values,
         "trajectory": trajectory,
-        "mse_weight": _vector("mse_weight", spec.mse_weight if opts["mse_weight"] is None else opts["mse_weight"], nx),
+        "mse_weight": V.vector(spec.mse_weight if cfg.mse_weight is None else cfg.mse_weight, "mse_weight", nx),
         "constraints": [p[1] for p in parsed],
         "violation_penalty": penalty,
         "disturbances": disturbance_values,
@@ -743,15 +705,15 @@ def make(system: str, task: str = "stabilization", **options) -> Env:
         ctrl_freq=ctrl_freq,
         physics_freq=physics_freq,
         episode_len_sec=episode_len_sec,
-        integrator=opts["integrator"],
-        action_mode=opts["action_mode"],
-        reward_type=opts["reward_type"],
-        obs_goal_horizon=int(horizon),
-        done_on_out_of_bounds=bool(opts["done_on_out_of_bounds"]),
-        done_on_goal=bool(opts["done_on_goal"]),
+        integrator=cfg.integrator,
+        action_mode=cfg.action_mode,
+        reward_type=cfg.reward_type,
+        obs_goal_horizon=horizon,
+        done_on_out_of_bounds=cfg.done_on_out_of_bounds,
+        done_on_goal=cfg.done_on_goal,
         trajectory_shape=shape,
         trajectory_plane=plane,
-        done_on_violation=bool(opts["done_on_violation"]),
+        done_on_violation=cfg.done_on_violation,
         init_state_spec=init_spec,
         physics_randomization_specs=physics_specs,
         constraint_specs=constraint_specs,

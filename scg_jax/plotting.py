@@ -11,7 +11,10 @@ Keys read (T control steps, N copies):
 - ``plane`` ("xz", ...) and ``plane_indices`` (2,), optional: the state indices of the position coordinates along
   the plane's two axes; when present, a spatial subplot of the path in that plane is added.
 - ``x_low``, ``x_high`` (nx,), optional: constraint bounds of each state coordinate (``+-inf`` where none), drawn
-  as red dotted lines (``scg_jax.constraints.box_bounds``).
+  as red dotted lines (``scg_jax.constraints.box_bounds``) where they are near the data: within one data range
+  of the traces and reference of that panel. A bound further away (e.g. the cart-pole's failure bound of 2.4 m
+  under a controller that keeps the cart within centimetres) would squash the traces into a flat line; it is
+  named in the panel title instead.
 - ``u`` (T, N, nu), ``input_names`` (nu,), optional: the applied inputs, one more subplot each, with the input
   bounds ``u_low``, ``u_high`` (nu,) when present.
 """
@@ -26,6 +29,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
 from scg_jax.files import write_atomic
 from scg_jax.metrics import episode_lengths
@@ -60,9 +64,10 @@ def plot_rollout(data, png_path, max_copies: int = 8) -> Figure:
     """Plot a saved rollout and write it as a PNG.
 
     One subplot per state dimension (time in s on the x axis, up to ``max_copies`` copies as thin lines, the
-    reference dashed black, an ``x`` where an episode terminated early) and, when ``plane_indices`` is in the
-    data (the CLI saves it for quadrotor_2d and quadrotor_3d), a spatial subplot of the position path in the
-    trajectory plane against the reference.
+    reference dashed black, an ``x`` where an episode terminated early, constraint bounds red dotted where they are
+    near the data) and, when ``plane_indices`` is in the data (the CLI saves it for quadrotor_2d and quadrotor_3d),
+    a spatial subplot of the position path in the trajectory plane against the reference. The figure legend lists
+    only what is drawn.
 
     Args:
         data: dict of arrays or the path of a ``.npz`` with the keys listed in the module docstring.
@@ -94,6 +99,7 @@ def plot_rollout(data, png_path, max_copies: int = 8) -> Figure:
     FigureCanvasAgg(fig)
     axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
     colors = [f"C{i % 10}" for i in range(shown)]
+    drawn_bounds = False
 
     for j in range(nx):
         ax = axes[j]
@@ -102,8 +108,9 @@ def plot_rollout(data, png_path, max_copies: int = 8) -> Figure:
             if ended_early[i]:
                 ax.plot(times[length[i]], x[length[i], i, j], "x", color=colors[i], ms=5)
         ax.plot(ref_times, x_ref[:, j], "k--", lw=1.2, label="reference")
-        _draw_bounds(ax, data, "x", j)
-        ax.set_title(names[j], fontsize=10)
+        drawn, off_scale = _draw_bounds(ax, data, "x", j, [x[:, :shown, j], x_ref[:, j]])
+        drawn_bounds |= drawn
+        ax.set_title(names[j] + off_scale, fontsize=10)
         ax.set_xlabel("t [s]")
         ax.grid(alpha=0.3)
 
@@ -117,8 +124,9 @@ def plot_rollout(data, png_path, max_copies: int = 8) -> Figure:
             ax = axes[nx + j]
             for i in range(shown):
                 ax.step(step_times[: u.shape[0]], u[:, i, j], where="post", color=colors[i], lw=0.8, alpha=0.85)
-            _draw_bounds(ax, data, "u", j)
-            ax.set_title(f"{input_names[j]} (applied)", fontsize=10)
+            drawn, off_scale = _draw_bounds(ax, data, "u", j, [u[:, :shown, j]])
+            drawn_bounds |= drawn
+            ax.set_title(f"{input_names[j]} (applied){off_scale}", fontsize=10)
             ax.set_xlabel("t [s]")
             ax.grid(alpha=0.3)
 
@@ -140,23 +148,48 @@ def plot_rollout(data, png_path, max_copies: int = 8) -> Figure:
 
     for ax in axes[num_panels:]:
         ax.set_visible(False)
-    fig.suptitle(
-        f"{data.get('system', '')} {data.get('task', '')}: {shown} of {num_envs} copies "
-        f"(x: terminated early, dashed: reference, red dotted: constraint bounds)",
-        fontsize=11,
-    )
+    fig.suptitle(f"{data.get('system', '')} {data.get('task', '')}: {shown} of {num_envs} copies", fontsize=11)
+    # The legend names only what is drawn: no bound entry when no bound is on screen, no termination marker when
+    # every shown copy ran to the end.
+    handles = [Line2D([], [], color="k", ls="--", lw=1.2, label="reference")]
+    if drawn_bounds:
+        handles.append(Line2D([], [], color="red", ls=":", lw=1.0, label="constraint bound"))
+    if np.any(ended_early[:shown]):
+        handles.append(Line2D([], [], color="gray", marker="x", ls="", ms=5, label="terminated early"))
+    fig.legend(handles=handles, loc="outside lower center", ncols=len(handles), fontsize=9, frameon=False)
     _save_png(fig, Path(png_path))
     return fig
 
 
-def _draw_bounds(ax, data: dict, prefix: str, j: int) -> None:
-    """Red dotted lines at the finite constraint bounds ``<prefix>_low[j]`` and ``<prefix>_high[j]``."""
+def _draw_bounds(ax, data: dict, prefix: str, j: int, values) -> tuple[bool, str]:
+    """Red dotted lines at the finite constraint bounds ``<prefix>_low[j]``, ``<prefix>_high[j]`` that lie within
+    one data range of ``values`` (the panel's traces and reference).
+
+    Returns:
+        whether a line was drawn, and a title suffix naming the bounds left out (``""`` when none).
+    """
+    finite = np.concatenate([np.ravel(np.asarray(v, dtype=np.float64)) for v in values])
+    finite = finite[np.isfinite(finite)]
+    drawn, skipped = False, []
     for side in ("low", "high"):
         name = f"{prefix}_{side}"
-        if name in data:
-            bound = float(np.asarray(data[name], dtype=np.float64)[j])
-            if np.isfinite(bound):
-                ax.axhline(bound, color="red", ls=":", lw=1.0)
+        bound = float(np.asarray(data[name], dtype=np.float64)[j]) if name in data else np.inf
+        if not np.isfinite(bound):
+            continue
+        if finite.size:
+            lo, hi = float(finite.min()), float(finite.max())
+            # Nearly constant data (a held input) gets a range of 10% of its size, so a bound close to it shows.
+            span = max(hi - lo, 0.1 * max(abs(lo), abs(hi)), 1e-9)
+            near = lo - span <= bound <= hi + span
+        else:
+            near = True
+        if near:
+            ax.axhline(bound, color="red", ls=":", lw=1.0)
+            drawn = True
+        else:
+            skipped.append(f"{bound:.3g}")
+    word = "bound" if len(skipped) == 1 else "bounds"
+    return drawn, f" ({word} {', '.join(skipped)} off scale)" if skipped else ""
 
 
 def _save_png(fig: Figure, path: Path) -> None:

@@ -21,7 +21,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from scg_jax import validation as V
 from scg_jax._pytree import pytree_dataclass
+from scg_jax.validation import FieldError
 
 DISTRIBUTIONS = ("uniform", "normal", "choice")
 _KEYS = {"uniform": ("low", "high"), "normal": ("mean", "std", "low", "high"), "choice": ("values",)}
@@ -48,37 +50,31 @@ class DistributionParams:
     values: object
 
 
-def parse_distribution(path: str, raw, shape: tuple[int, ...], positive: bool, allow_relative: bool):
-    """Validate a distribution option; return ``(DistributionSpec, dict of numpy values)``.
+def parse_distribution(path: str, dist, shape: tuple[int, ...], positive: bool, allow_relative: bool):
+    """Check a distribution against its shape; return ``(DistributionSpec, dict of numpy values)``.
 
-    A plain number or list (not a mapping) means a fixed value: ``uniform`` with ``low = high``.
+    Args:
+        path: dotted name for messages (``"init_state"``, ``"physics_randomization.mass"``).
+        dist: a ``scg_jax.config.DistributionConfig`` (type and keys already checked), or a fixed value (a number
+            or a list of numbers), which means ``uniform`` with ``low = high``.
+        shape: ``()`` for a physical parameter, ``(nx,)`` for the initial state. positive: every drawable value
+            must be > 0. allow_relative: whether ``relative`` may be set.
+
+    Raises:
+        scg_jax.validation.FieldError: naming ``path.<key>``.
     """
-    if not isinstance(raw, dict):
-        raw = {"type": "uniform", "low": raw, "high": raw}
-    kind = raw.get("type")
-    if kind not in DISTRIBUTIONS:
-        raise ValueError(f"{path}.type: unknown value {kind!r}; allowed values are {', '.join(DISTRIBUTIONS)}")
-    allowed = ("type", "relative") + _KEYS[kind] if allow_relative else ("type",) + _KEYS[kind]
-    for key in raw:
-        if key not in allowed:
-            raise ValueError(
-                f"{path}.{key}: unknown key for a {kind} distribution here; allowed keys are {', '.join(allowed)}"
-            )
-    relative = raw.get("relative", False)
-    if not isinstance(relative, bool):
-        raise ValueError(f"{path}.relative: expected true or false, got {relative!r}")
+    if not hasattr(dist, "type"):  # a fixed value
+        kind, relative, get = "uniform", False, {"low": dist, "high": dist}.get
+    else:
+        kind, relative, get = dist.type, bool(dist.relative), lambda key: getattr(dist, key)
+        if dist.relative is not None and not allow_relative:
+            V.check_keys({"relative": None}, path, ("type", *_KEYS[kind]), where=f"for a {kind} distribution here")
 
-    def array(key, target_shape=shape):
-        if key not in raw:
-            raise ValueError(f"{path}.{key}: required for a {kind} distribution")
-        value = np.asarray(raw[key], dtype=float)
-        if value.ndim == 0:
-            value = np.broadcast_to(value, target_shape)
-        if value.shape != target_shape:
-            raise ValueError(f"{path}.{key}: expected shape {target_shape}, got {value.shape}")
-        if np.any(np.isnan(value)):
-            raise ValueError(f"{path}.{key}: values must not be NaN")
-        return np.array(value)
+    def array(key, allow_inf=False):
+        at = f"{path}.{key}"
+        if shape == ():
+            return np.asarray(V.number(get(key), at, allow_inf=allow_inf))
+        return V.vector(get(key), at, shape[0], broadcast=True, allow_inf=allow_inf)
 
     zeros = np.zeros(shape)
     values = {"low": zeros, "high": zeros, "mean": zeros, "std": zeros, "values": zeros[None]}
@@ -86,39 +82,40 @@ def parse_distribution(path: str, raw, shape: tuple[int, ...], positive: bool, a
     what = "factor" if relative else "value"
     if kind == "uniform":
         values["low"], values["high"] = array("low"), array("high")
-        if not (np.all(np.isfinite(values["low"])) and np.all(np.isfinite(values["high"]))):
-            raise ValueError(f"{path}: uniform bounds must be finite")
         if np.any(values["low"] > values["high"]):
-            raise ValueError(
-                f"{path}.low: must not exceed high, got {values['low'].tolist()} and {values['high'].tolist()}"
+            raise FieldError(
+                f"{path}.low", f"must not exceed high, got {values['low'].tolist()} and {values['high'].tolist()}"
             )
         if positive and np.any(values["low"] <= 0):
-            raise ValueError(f"{path}.low: must be positive so every drawn {what} is, got {values['low'].tolist()}")
+            raise FieldError(f"{path}.low", f"must be positive so every drawn {what} is, got {values['low'].tolist()}")
     elif kind == "normal":
         values["mean"], values["std"] = array("mean"), array("std")
-        if np.any(values["std"] <= 0) or not np.all(np.isfinite(values["std"])):
-            raise ValueError(f"{path}.std: must be positive and finite, got {values['std'].tolist()}")
-        truncated = "low" in raw or "high" in raw
+        if np.any(values["std"] <= 0):
+            raise FieldError(f"{path}.std", f"must be positive, got {values['std'].tolist()}")
+        truncated = get("low") is not None or get("high") is not None
         if truncated:
-            values["low"] = array("low") if "low" in raw else np.full(shape, -np.inf)
-            values["high"] = array("high") if "high" in raw else np.full(shape, np.inf)
+            values["low"] = array("low", True) if get("low") is not None else np.full(shape, -np.inf)
+            values["high"] = array("high", True) if get("high") is not None else np.full(shape, np.inf)
             if np.any(values["low"] >= values["high"]):
-                raise ValueError(f"{path}.low: must be below high")
+                raise FieldError(
+                    f"{path}.low", f"must be below high, got {values['low'].tolist()} and {values['high'].tolist()}"
+                )
         if positive and (not truncated or np.any(values["low"] <= 0)):
-            raise ValueError(
-                f"{path}.low: a normal distribution of a positive parameter needs a truncation "
-                f"low > 0 so no non-positive {what} can be drawn"
+            raise FieldError(
+                f"{path}.low",
+                f"a normal distribution of a positive parameter needs a truncation low > 0 so no non-positive {what} "
+                "can be drawn",
             )
     else:
-        candidates = np.asarray(raw.get("values"), dtype=float)
-        if candidates.ndim != len(shape) + 1 or candidates.shape[1:] != shape or candidates.shape[0] == 0:
-            raise ValueError(
-                f"{path}.values: expected a non-empty list of values of shape {shape}, got shape {candidates.shape}"
-            )
-        if not np.all(np.isfinite(candidates)):
-            raise ValueError(f"{path}.values: values must be finite")
+        raw = get("values")
+        if shape == ():
+            candidates = V.vector(raw, f"{path}.values")
+        else:
+            candidates = V.matrix(raw, f"{path}.values", cols=shape[0])
+        if candidates.shape[0] == 0:
+            raise FieldError(f"{path}.values", f"expected a non-empty list of values of shape {shape}, got []")
         if positive and np.any(candidates <= 0):
-            raise ValueError(f"{path}.values: must all be positive, got {candidates.tolist()}")
+            raise FieldError(f"{path}.values", f"must all be positive, got {candidates.tolist()}")
         values["values"] = candidates
     return DistributionSpec(kind, relative, truncated, shape), values
 

@@ -1,6 +1,7 @@
 """The scg-jax command: outputs on disk, numbers in them, and clear errors."""
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -188,3 +189,120 @@ def test_train_refuses_bad_hyperparameters(tmp_path, capsys):
     assert main(args) == 2
     assert "training.ppo.gama: unknown key" in capsys.readouterr().err
     assert not out.exists()
+
+
+# ----------------------------------------------------------------------------------------------- --gain convention
+def test_gain_convention_the_default_lqr_gain_passed_explicitly_stabilises(tmp_path):
+    """--gain K means u = u_ref - K (x - x_ref): the default gain, copied from metrics.json into --gain (negative
+    values right after the flag, as a user types them), gives the same, stable rollout."""
+    common = ["--system", "cartpole", "--num-envs", "16"]
+    _, default = _run(tmp_path, "default", *common)
+    K = np.asarray(default["gain"])
+    np.testing.assert_allclose(K, [[-2.781, -5.150, -43.88, -11.58]], rtol=2e-3)  # the help text's example
+    _, explicit = _run(tmp_path, "explicit", *common, "--gain", ",".join(str(float(k)) for k in K.ravel()))
+    assert explicit["summary"]["failure_rate"] == default["summary"]["failure_rate"] == 0.0
+    np.testing.assert_allclose(explicit["per_copy"]["rmse"], default["per_copy"]["rmse"], rtol=1e-6)
+    # The opposite sign on the cart terms (a gain for u = u_ref + K e on x) drops most poles.
+    _, flipped = _run(tmp_path, "flipped", *common, "--gain", "1,2,-30,-5")
+    assert flipped["summary"]["failure_rate"] > 0.5
+
+
+def test_gain_help_states_the_sign_convention(capsys):
+    assert main(["rollout", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "u = u_ref - K (x - x_ref) (note the minus sign)" in text
+    assert "--gain -2.8,-5.2,-43.9,-11.6" in text
+
+
+# ----------------------------------------------------------------------------------------------- --out checks
+@pytest.fixture
+def no_work(monkeypatch):
+    """Fail the test if a command starts computing: the output location must be refused before."""
+    import importlib
+
+    import algorithms.evaluation
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the command started computing before checking --out")
+
+    # scg_jax.rollout is also the name of a function in scg_jax, so fetch the module itself.
+    monkeypatch.setattr(importlib.import_module("scg_jax.rollout"), "make_rollout", refuse)
+    monkeypatch.setattr(algorithms.evaluation, "evaluate", refuse)
+
+
+def _bad_out(capsys, argv) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "Traceback" not in "\n".join(err)
+    return err[-1]
+
+
+def test_out_with_a_file_in_the_way_exits_2_before_any_work(tmp_path, capsys, no_work):
+    blocker = tmp_path / "blocker"
+    blocker.write_text("not a folder")
+    line = _bad_out(capsys, ["rollout", "--system", "cartpole", "--out", str(blocker / "run")])
+    assert line == (
+        f"scg-jax rollout: error: argument --out: cannot write results to '{blocker / 'run'}': '{blocker}' is a "
+        "file, not a folder"
+    )
+    line = _bad_out(capsys, ["eval", "--system", "cartpole", "--controller", "lqr", "--out", str(blocker / "e.json")])
+    assert line.endswith(
+        f"argument --out: cannot write results to '{blocker / 'e.json'}': '{blocker}' is a file, not a folder"
+    )
+    line = _bad_out(
+        capsys, ["compare", "--system", "cartpole", "--controllers", "lqr", "--out", str(blocker / "c.json")]
+    )
+    assert "argument --out: cannot write results to" in line and "is a file, not a folder" in line
+    folder = tmp_path / "taken.json"
+    folder.mkdir()
+    line = _bad_out(capsys, ["eval", "--system", "cartpole", "--controller", "lqr", "--out", str(folder)])
+    assert line.endswith(f"argument --out: cannot write results to '{folder}': it is a folder, expected a file name")
+    assert blocker.read_text() == "not a folder" and not any(folder.iterdir())
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may write into read-only folders")
+def test_out_in_a_read_only_folder_exits_2_before_any_work(tmp_path, capsys, no_work):
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        line = _bad_out(capsys, ["rollout", "--system", "cartpole", "--out", str(locked / "a" / "b")])
+    finally:
+        locked.chmod(0o700)
+    assert line.endswith(
+        f"cannot write results to '{locked / 'a' / 'b'}': '{locked}' is not writable (Permission denied)"
+    )
+    assert not any(locked.iterdir())
+
+
+def test_check_output_dir_accepts_missing_parents_and_creates_nothing(tmp_path):
+    from scg_jax.files import check_output_dir, check_output_file
+
+    target = tmp_path / "a" / "b" / "c"
+    assert check_output_dir(target) == target and not (tmp_path / "a").exists()
+    assert check_output_file(target / "m.json") == target / "m.json" and not (tmp_path / "a").exists()
+    assert list(tmp_path.iterdir()) == []  # the write probe is removed
+
+
+def test_missing_out_parents_are_created_when_results_are_written(tmp_path):
+    out = tmp_path / "new" / "nested" / "eval.json"
+    assert main(["eval", *_EVAL_ENV, "--controller", "lqr", "--out", str(out)]) == 0
+    assert json.loads(out.read_text())["controller"] == "lqr"
+
+
+def test_check_output_dir_refuses_a_folder_it_cannot_write(tmp_path, monkeypatch):
+    """The write probe is the test (os.access ignores read-only mounts and says yes to root); simulate its refusal
+    so this runs as root too."""
+    import tempfile
+
+    from scg_jax.files import check_output_dir
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    with pytest.raises(ValueError) as err:
+        check_output_dir(tmp_path / "a" / "b")
+    assert str(err.value) == (
+        f"cannot write results to '{tmp_path / 'a' / 'b'}': '{tmp_path}' is not writable (Permission denied)"
+    )

@@ -136,7 +136,7 @@ def test_adversary_input_is_clipped_and_scaled_on_its_channel():
 @pytest.mark.parametrize(
     ("disturbances", "message"),
     [
-        ({"wind": []}, r"disturbances: unknown value 'wind'; allowed values are action, observation, dynamics"),
+        ({"wind": []}, r"disturbances.wind: unknown key; allowed keys are action, observation, dynamics$"),
         ({"action": [{"type": "gust"}]}, r"disturbances.action\[0\].type: unknown value 'gust'; allowed values"),
         ({"action": [{"type": "white_noise"}]}, r"disturbances.action\[0\].std: required"),
         (

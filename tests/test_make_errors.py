@@ -1,8 +1,11 @@
 """Bad options fail at ``make`` with a message that names the option and the allowed values."""
 
+import numpy as np
 import pytest
 
 import scg_jax
+from scg_jax.config import EnvConfig
+from scg_jax.validation import FieldError
 
 CASES = [
     (
@@ -21,7 +24,7 @@ CASES = [
     (
         ("cartpole", "tracking"),
         {"trajectory": {"offset": [0.0, 1.0, 2.0]}},
-        r"trajectory.offset: expected 2 values, got shape \(3,\)",
+        r"trajectory.offset: expected 2 values, got 3: \[0.0, 1.0, 2.0\]$",
     ),
     (("cartpole", "tracking"), {"trajectory": {"speed": 2}}, r"trajectory.speed: unknown key; allowed keys are"),
     (
@@ -54,3 +57,59 @@ CASES = [
 def test_bad_option_names_field_and_allowed_values(args, options, message):
     with pytest.raises(ValueError, match=message):
         scg_jax.make(*args, **options)
+
+
+# Wrong types name the option (not a TypeError from deep inside), and every message is exact.
+EXACT = [
+    ({"ctrl_freq": "50"}, "ctrl_freq", "expected an integer, got '50'"),
+    ({"ctrl_freq": True}, "ctrl_freq", "expected an integer, got True"),
+    ({"episode_len_sec": "5"}, "episode_len_sec", "expected a finite number, got '5'"),
+    ({"done_on_goal": 1}, "done_on_goal", "expected true or false, got 1"),
+    ({"goal_tolerance": 0.0}, "goal_tolerance", "must be positive, got 0"),
+    ({"violation_penalty": -2.0}, "violation_penalty", "must be >= 0 (it is subtracted from the reward), got -2"),
+    ({"Q": [1.0, 1.0, 1.0, float("nan")]}, "Q[3]", "must be finite, got nan"),
+    ({"goal": [0.0, 0.0, float("inf"), 0.0]}, "goal[2]", "must be finite, got inf"),
+    (
+        {"integrator": "rk5"},
+        "integrator",
+        "unknown value 'rk5'; allowed values are euler, semi_implicit_euler, rk4 (did you mean 'rk4'?)",
+    ),
+    (
+        {"disturbances": {"action": [{"type": "white_noise", "std": -1}]}},
+        "disturbances.action[0].std",
+        "must be >= 0, got -1.0",
+    ),
+    (
+        {"physics": {"cart_mass": -1.0}},
+        "physics.cart_mass",
+        "must be a positive finite number for cartpole, got -1.0",
+    ),
+    (
+        {"physics": {"pole_lenght": 1.0}},
+        "physics.pole_lenght",
+        "unknown parameter of cartpole; allowed parameters are cart_mass, pole_mass, pole_half_length, gravity, "
+        "force_max (did you mean 'pole_half_length'?)",
+    ),
+]
+
+
+@pytest.mark.parametrize(("options", "path", "reason"), EXACT)
+def test_errors_are_field_errors_with_the_path_and_the_exact_reason(options, path, reason):
+    with pytest.raises(FieldError) as err:
+        scg_jax.make("cartpole", **options)
+    assert isinstance(err.value, ValueError)
+    assert (err.value.path, err.value.reason) == (path, reason)
+    assert str(err.value) == f"{path}: {reason}"
+
+
+def test_make_accepts_the_typed_config_and_builds_the_same_env():
+    options = {"ctrl_freq": 25, "physics_freq": 500, "constraints": [{"type": "abs_bound", "on": "input", "bound": 3}]}
+    from_kwargs = scg_jax.make("cartpole", **options)
+    from_config = scg_jax.make(EnvConfig(system="cartpole", **options))
+    assert (from_config.ctrl_freq, from_config.substeps) == (from_kwargs.ctrl_freq, from_kwargs.substeps) == (25, 20)
+    assert from_config.constraint_specs == from_kwargs.constraint_specs
+    np.testing.assert_array_equal(
+        np.asarray(from_config.default_params.constraints[0].b), np.asarray(from_kwargs.default_params.constraints[0].b)
+    )
+    with pytest.raises(TypeError, match="pass either an EnvConfig alone"):
+        scg_jax.make(EnvConfig(system="cartpole"), ctrl_freq=10)

@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from scg_jax.validation import FieldError
+
 
 @dataclasses.dataclass(frozen=True)
 class System:
@@ -78,8 +80,11 @@ class System:
 
 
 def require_positive(params, names, system: str) -> None:
-    """Raise a ValueError naming ``system.params.<field>`` for each non-positive or non-finite value."""
+    """Raise a ``FieldError`` naming ``physics.<field>`` (the ``make`` option) for each non-positive or non-finite
+    value."""
     for name in names:
         value = np.asarray(getattr(params, name), dtype=float)
         if not np.all(np.isfinite(value)) or np.any(value <= 0.0):
-            raise ValueError(f"{system}.params.{name}: must be a positive finite number, got {value.tolist()!r}")
+            raise FieldError(
+                f"physics.{name}", f"must be a positive finite number for {system}, got {value.tolist()!r}"
+            )

@@ -11,6 +11,7 @@ import numpy as np
 
 from scg_jax._pytree import pytree_dataclass
 from scg_jax.systems.base import require_positive
+from scg_jax.validation import FieldError
 
 DEG = np.pi / 180.0
 
@@ -47,9 +48,10 @@ def validate_params(params: Params, system: str) -> None:
     low = np.asarray(params.motor_thrust_min, dtype=float)
     high = np.asarray(params.motor_thrust_max, dtype=float)
     if np.any(low < 0.0) or np.any(low >= high):
-        raise ValueError(
-            f"{system}.params.motor_thrust_min: must satisfy 0 <= motor_thrust_min < motor_thrust_max, "
-            f"got {low.tolist()!r} and {high.tolist()!r}"
+        raise FieldError(
+            "physics.motor_thrust_min",
+            f"must satisfy 0 <= motor_thrust_min < motor_thrust_max for {system}, got {low.tolist()!r} and "
+            f"{high.tolist()!r}",
         )
 
 
