@@ -58,10 +58,8 @@ import numpy as np
 from jax import lax
 from jax.scipy.linalg import cho_solve
 
-from algorithms.base import JaxController, option, parse_options, positive, state_from_obs, weight_diagonal
-from algorithms.lqr import discrete_lqr_gain
-from scg_jax.backends import jax_backend
-from scg_jax.integrators import make_discrete_dynamics
+from algorithms import controller_setup as setup
+from algorithms.base import JaxController, option, parse_options, positive, state_from_obs
 
 INPUT_CONSTRAINTS = ("box", "clip")
 
@@ -502,25 +500,9 @@ class ILQRState(NamedTuple):
 
 
 def model_step_fn(env, prior_params, discretization: str = "rk4"):
-    """The prior model's discrete step ``f(x, u) -> x_next`` over one control period (JAX).
-
-    ``"env"``: the env's integrator with its physics substeps (``env.discrete_dynamics()``); ``"rk4"``: one RK4
-    step of length ``env.dt``. Both call the system's one ``dynamics`` with ``prior_params.physics``.
-    """
-    if discretization not in DISCRETIZATIONS:
-        raise ValueError(
-            f"discretization: unknown value {discretization!r}; allowed values are {', '.join(DISCRETIZATIONS)}"
-        )
-    if discretization == "env":
-        discrete = env.discrete_dynamics()
-    else:
-        discrete = make_discrete_dynamics(env.system.dynamics, "rk4", env.dt, 1, env.system.velocity_mask)
-    physics = prior_params.physics
-
-    def step_fn(x, u):
-        return discrete(x, u, physics, jax_backend)
-
-    return step_fn
+    """The prior model's discrete step ``f(x, u) -> x_next`` over one control period (JAX); the shared helper
+    ``algorithms.controller_setup.prior_step_fn``, kept under this name for callers of this module."""
+    return setup.prior_step_fn(env, prior_params, discretization)
 
 
 def make_ilqr(env, prior_params, options=None) -> JaxController:
@@ -554,33 +536,20 @@ def make_ilqr(env, prior_params, options=None) -> JaxController:
     opts = parse_options(Options, options, path)
     settings = opts.settings()
     nx, nu = env.nx, env.nu
-    Q = np.asarray(prior_params.Q, dtype=np.float64)
-    R = np.asarray(prior_params.R, dtype=np.float64)
-    if opts.q_diag is not None:
-        Q = np.diag(weight_diagonal(f"{path}.q_diag", opts.q_diag, (), nx))
-    if opts.r_diag is not None:
-        R = np.diag(weight_diagonal(f"{path}.r_diag", opts.r_diag, (), nu))
-    if np.linalg.eigvalsh(R).min() <= 0:
-        raise ValueError(f"{path}.r_diag: the input weight must be positive definite")
-    u_eq = np.asarray(env.system.equilibrium_input(prior_params.physics), dtype=np.float64).reshape(nu)
+    Q, R = setup.cost_weights(env, prior_params, opts.q_diag, opts.r_diag, path)
+    u_eq = setup.equilibrium_input(env, prior_params)
     K_lqr, P = np.zeros((nu, nx)), Q
     if opts.terminal_weight == "dare" or opts.warm_start == "lqr":
-        goal = np.asarray(prior_params.goal, dtype=np.float64)
-        lin = env.symbolic_model(prior_params, opts.discretization).linearize(goal, u_eq)
-        try:
-            K_dare, P_dare = discrete_lqr_gain(lin.Ad, lin.Bd, Q, R)
-        except ValueError as error:
-            field = "terminal_weight" if opts.terminal_weight == "dare" else "warm_start"
-            raise ValueError(
-                f"{path}.{field}: the discrete Riccati equation about the goal has no stabilising solution ({error}); "
-                "use terminal_weight 'stage' and warm_start 'open_loop'"
-            ) from error
+        field = "terminal_weight" if opts.terminal_weight == "dare" else "warm_start"
+        model = setup.prior_model(env, prior_params, opts.discretization)
+        hint = "use terminal_weight 'stage' and warm_start 'open_loop'"
+        K_dare, P_dare = setup.goal_lqr(env, prior_params, model, Q, R, path, field, hint)
         if opts.terminal_weight == "dare":
             P = P_dare
         if opts.warm_start == "lqr":
             K_lqr = K_dare
     Q_terminal = opts.terminal_scale * P
-    u_low, u_high = (np.asarray(b, dtype=np.float64).reshape(nu) for b in env.input_bounds(prior_params.physics))
+    u_low, u_high = setup.input_limits(env, prior_params)
     step_fn = model_step_fn(env, prior_params, opts.discretization)
     horizon = opts.horizon
 

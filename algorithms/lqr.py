@@ -19,7 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from algorithms.base import JaxController, option, parse_options, state_from_obs, weight_diagonal
+from algorithms import controller_setup as setup
+from algorithms.base import JaxController, option, parse_options, state_from_obs
 
 
 def _matrix(name: str, value, shape: tuple[int, int]) -> np.ndarray:
@@ -122,16 +123,6 @@ def continuous_lqr_gain(A, B, Q, R) -> tuple[np.ndarray, np.ndarray]:
     return np.linalg.solve(R, B.T @ P), P
 
 
-def _weights(env, prior_params, opts: Options) -> tuple[np.ndarray, np.ndarray]:
-    Q = np.asarray(prior_params.Q, dtype=np.float64)
-    R = np.asarray(prior_params.R, dtype=np.float64)
-    if opts.q_diag is not None:
-        Q = np.diag(weight_diagonal("controllers.lqr.q_diag", opts.q_diag, (), env.nx))
-    if opts.r_diag is not None:
-        R = np.diag(weight_diagonal("controllers.lqr.r_diag", opts.r_diag, (), env.nu))
-    return Q, R
-
-
 def make_lqr(env, prior_params, options=None) -> JaxController:
     """LQR about the goal or about the reference, from the prior model ``env.symbolic_model(prior_params)``.
 
@@ -149,12 +140,12 @@ def make_lqr(env, prior_params, options=None) -> JaxController:
         A ``JaxController`` named ``"lqr"`` whose ``info`` holds the gains ``K`` ((num_gains, nu, nx) numpy).
     """
     opts = parse_options(Options, options, "controllers.lqr")
-    mode = opts.mode if opts.mode != "auto" else ("goal" if env.task == "stabilization" else "reference")
-    Q, R = _weights(env, prior_params, opts)
-    model = env.symbolic_model(prior_params)
-    u_eq = np.asarray(env.system.equilibrium_input(prior_params.physics), dtype=np.float64)
-    x_ref = np.asarray(model.x_ref, dtype=np.float64)
-    points = x_ref[:1] if mode == "goal" else x_ref
+    path = "controllers.lqr"
+    mode = setup.linearization_mode(env, opts.mode)
+    Q, R = setup.cost_weights(env, prior_params, opts.q_diag, opts.r_diag, path)
+    model = setup.prior_model(env, prior_params, "env")
+    u_eq = setup.equilibrium_input(env, prior_params)
+    points = setup.linearization_points(env, prior_params, model, mode)
     gains = []
     for x0 in points:
         lin = model.linearize(x0, u_eq)

@@ -55,6 +55,31 @@ def test_near_the_goal_the_first_input_is_the_lqr_input(system):
     assert errors[0] < 0.02 and errors[1] < 0.1 * errors[0]
 
 
+def test_a_full_state_weight_is_optimised_as_lqr_optimises_it():
+    # Issue 11: the NMPC kept only the diagonal of Q, so it optimised another cost than LQR and the linear MPC.
+    # With off-diagonal weights (x with theta, x_dot with theta_dot; eigenvalues 0.2 to 1.8) its first input near
+    # the goal must be LQR's for the *full* Q, which here is far from LQR's for diag(Q).
+    env = scg_jax.make("cartpole")
+    Q = np.eye(4)
+    Q[0, 2] = Q[2, 0] = 0.8
+    Q[1, 3] = Q[3, 1] = 0.5
+    params = env.default_params.replace(Q=jnp.asarray(Q, env.default_params.Q.dtype))
+    reference = _reference(env, params)
+    K_full = make_lqr(env, params).info["K"][0]
+    K_diag = make_lqr(env, params, {"q_diag": np.diag(Q).tolist()}).info["K"][0]
+    mpc = make_nonlinear_mpc(env, params, {"horizon": 10, "tol": 1e-10, "discretization": "env"})
+    np.testing.assert_allclose(mpc.Q, np.asarray(params.Q, np.float64))
+    dx = 1e-3 * np.random.default_rng(1).uniform(-1.0, 1.0, env.nx)
+    u, state = mpc.act(mpc.reset(None, reference), reference.x_ref[0] + dx, 0, reference)
+    assert state.sources == ("solution",)
+    u_eq = np.asarray(env.system.equilibrium_input(params.physics), np.float64)
+    u_full, u_diag = u_eq - K_full @ dx, u_eq - K_diag @ dx
+    # Measured: 1.5e-7 of the LQR input's size from the full-Q law, 0.081 from the diagonal one (the old NMPC's).
+    scale = np.abs(u_full - u_eq).max()
+    assert np.abs(u - u_full).max() < 1e-3 * scale
+    assert np.abs(u - u_diag).max() > 0.05 * scale
+
+
 def test_nonlinear_mpc_tracks_a_circle_better_than_lqr(circle):
     env, params = circle
     key = jax.random.key(0)

@@ -57,13 +57,14 @@ from typing import Any, ClassVar, NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from algorithms.base import JaxController, option, parse_options, positive, state_from_obs, weight_diagonal
+from algorithms import controller_setup as setup
+from algorithms.base import JaxController, option, parse_options, positive, state_from_obs
 from algorithms.lqr import discrete_lqr_gain
 from algorithms.mpc import qp as qp_lib
 
-LINEARIZE_ABOUT = ("auto", "goal", "reference")
-TERMINAL_WEIGHTS = ("dare", "stage")
-DISCRETIZATIONS = ("env", "rk4")
+LINEARIZE_ABOUT = setup.LINEARIZE_ABOUT
+TERMINAL_WEIGHTS = setup.TERMINAL_WEIGHTS
+DISCRETIZATIONS = setup.DISCRETIZATIONS
 CASADI_SOLVERS = ("qpoases", "osqp")
 PATH = "controllers.linear_mpc"
 CASADI_PATH = "controllers.linear_mpc_casadi"
@@ -159,35 +160,13 @@ class Problem:
     u_high: np.ndarray
 
 
-def _weights(env, prior_params, opts: Options, path: str) -> tuple[np.ndarray, np.ndarray]:
-    Q = np.asarray(prior_params.Q, dtype=np.float64)
-    R = np.asarray(prior_params.R, dtype=np.float64)
-    if opts.q_diag is not None:
-        Q = np.diag(weight_diagonal(f"{path}.q_diag", opts.q_diag, (), env.nx))
-    if opts.r_diag is not None:
-        R = np.diag(weight_diagonal(f"{path}.r_diag", opts.r_diag, (), env.nu))
-    if np.linalg.eigvalsh(R).min() <= 0:
-        raise ValueError(f"{path}.r_diag: the input weight R must be positive definite")
-    return Q, R
-
-
 def _affine_model(env, prior_params, model, opts: Options, Q, R):
     """Linearisations, offsets, LQR gains and terminal weights at the chosen points."""
-    mode = opts.linearize_about
-    if mode == "auto":
-        mode = "goal" if env.task == "stabilization" else "reference"
-    u_bar = np.asarray(env.system.equilibrium_input(prior_params.physics), dtype=np.float64).reshape(env.nu)
-    if mode == "goal":
-        x_bar = np.asarray(prior_params.goal, dtype=np.float64).reshape(1, env.nx)
-    else:
-        x_bar = np.asarray(model.x_ref, dtype=np.float64)
+    mode = setup.linearization_mode(env, opts.linearize_about)
+    u_bar = setup.equilibrium_input(env, prior_params)
+    x_bar = setup.linearization_points(env, prior_params, model, mode)
     n = x_bar.shape[0]
-    U = np.repeat(u_bar[:, None], n, axis=1)
-    Ad_all, Bd_all = model.dfd.map(n)(x_bar.T, U)
-    Ad = np.asarray(Ad_all).reshape(env.nx, n, env.nx).transpose(1, 0, 2)
-    Bd = np.asarray(Bd_all).reshape(env.nx, n, env.nu).transpose(1, 0, 2)
-    f_bar = np.asarray(model.fd.map(n)(x_bar.T, U)).T
-    c = f_bar - np.einsum("ixy,iy->ix", Ad, x_bar) - Bd @ u_bar
+    Ad, Bd, c = setup.linearize_along(model, x_bar, u_bar)
 
     # One Riccati solve when the linear part is the same everywhere (stabilization; level quadrotor references).
     same = qp_lib.same_along_axis0(Ad) and qp_lib.same_along_axis0(Bd)
@@ -207,7 +186,7 @@ def _affine_model(env, prior_params, model, opts: Options, Q, R):
 def _constraint_rows(env, prior_params, use_env: bool):
     """Actuator-limit rows, then the env's linear constraint rows as ``Ax x + Au u <= b`` (duplicates merged)."""
     nx, nu = env.nx, env.nu
-    low, high = (np.asarray(b, dtype=np.float64).reshape(nu) for b in env.system.input_bounds(prior_params.physics))
+    low, high = setup.input_limits(env, prior_params)
     Ax, Au, b = [], [], []
     for i in range(nu):
         for sign, bound in ((1.0, high[i]), (-1.0, -low[i])):
@@ -280,8 +259,8 @@ def build_problem(env, prior_params, options=None, path: str = PATH) -> Problem:
     """Parse ``options`` (error messages name ``<path>.<field>``) and build the host data both controllers share
     (see ``Problem``)."""
     opts = parse_options(Options, options, path)
-    Q, R = _weights(env, prior_params, opts, path)
-    model = env.symbolic_model(prior_params, opts.discretization)
+    Q, R = setup.cost_weights(env, prior_params, opts.q_diag, opts.r_diag, path)
+    model = setup.prior_model(env, prior_params, opts.discretization)
     affine, K_lqr, _ = _affine_model(env, prior_params, model, opts, Q, R)
     rows, row_of, skipped, u_low, u_high = _constraint_rows(env, prior_params, opts.env_constraints)
     if np.any(u_low > u_high):
@@ -470,7 +449,7 @@ def make_linear_mpc_casadi(env, prior_params, options=None) -> LinearMPCCasadi:
         opti.subject_to(cs.vec(E) >= 0)
         cost += opts.slack_l1 * cs.sum1(cs.vec(E)) + 0.5 * opts.slack_l2 * cs.sumsqr(E)
 
-    low, high = (np.asarray(b, dtype=np.float64).reshape(nu) for b in env.system.input_bounds(prior_params.physics))
+    low, high = setup.input_limits(env, prior_params)
     # Each distinct row once: the actuator limits are rows 0..n-1 of ``problem.rows``, and an env row that repeats
     # one of them (the "default" input constraint) or an earlier env row is skipped, since duplicated rows make the
     # active set degenerate for qpOASES.

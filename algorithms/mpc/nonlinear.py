@@ -56,8 +56,8 @@ from typing import NamedTuple
 import casadi as cs
 import numpy as np
 
-from algorithms.base import option, parse_options, positive, state_from_obs, weight_diagonal
-from algorithms.lqr import discrete_lqr_gain
+from algorithms import controller_setup as setup
+from algorithms.base import option, parse_options, positive, state_from_obs
 
 PATH = "controllers.nonlinear_mpc"
 SOURCES = ("solution", "last_iterate", "shifted_plan", "equilibrium")
@@ -78,8 +78,8 @@ class Options:
     """Options of the nonlinear MPC (a config file's ``controllers.nonlinear_mpc`` section)."""
 
     horizon: int = option(20, "prediction horizon H, control steps")
-    q_diag: tuple | None = option(None, "diagonal state weight (nx,); default: the diagonal of the prior's Q")
-    r_diag: tuple | None = option(None, "diagonal input weight (nu,); default: the diagonal of the prior's R")
+    q_diag: tuple | None = option(None, "diagonal state weight (nx,); default: the prior's Q")
+    r_diag: tuple | None = option(None, "diagonal input weight (nu,); default: the prior's R")
     terminal_weight: str = option(
         "dare",
         "terminal weight: dare (Riccati solution of the prior linearised about the goal) or stage (Q)",
@@ -181,28 +181,16 @@ class NonlinearMPC:
         self.env = env
         self.options = opts
         self.horizon = H = opts.horizon
-        self.model = model = env.symbolic_model(prior_params, discretization=opts.discretization)
+        self.model = model = setup.prior_model(env, prior_params, opts.discretization)
         self.fd = model.fd if prediction_model is None else prediction_model
         nx, nu = self.nx, self.nu = model.nx, model.nu
-        Q = np.diag(weight_diagonal(f"{PATH}.q_diag", opts.q_diag, np.diag(np.asarray(prior_params.Q, float)), nx))
-        R = np.diag(weight_diagonal(f"{PATH}.r_diag", opts.r_diag, np.diag(np.asarray(prior_params.R, float)), nu))
-        self.Q, self.R = Q, R
-        self.u_eq = np.asarray(env.system.equilibrium_input(prior_params.physics), dtype=np.float64).reshape(nu)
-        low, high = env.input_bounds(prior_params.physics)
-        self.u_low = np.asarray(low, dtype=np.float64).reshape(nu)
-        self.u_high = np.asarray(high, dtype=np.float64).reshape(nu)
-        if opts.terminal_weight == "dare":
-            goal = np.asarray(prior_params.goal, dtype=np.float64)
-            lin = model.linearize(goal, self.u_eq)
-            try:
-                _, self.P = discrete_lqr_gain(lin.Ad, lin.Bd, Q, R)
-            except ValueError as error:
-                raise ValueError(
-                    f"{PATH}.terminal_weight: 'dare' needs a stabilising Riccati solution about the goal ({error}); "
-                    "use 'stage' or change q_diag / r_diag"
-                ) from None
-        else:
-            self.P = Q.copy()
+        # The full prior Q and R (or the options' diagonals), as every model-based controller here uses them.
+        self.Q, self.R = Q, R = setup.cost_weights(
+            env, prior_params, opts.q_diag, opts.r_diag, PATH, positive_definite_r=False
+        )
+        self.u_eq = setup.equilibrium_input(env, prior_params)
+        self.u_low, self.u_high = setup.input_limits(env, prior_params)
+        self.P = setup.terminal_weight(opts.terminal_weight, env, prior_params, model, Q, R, PATH)
         self.ng_env = ng_env = int(model.g.size1_out(0))
 
         # ---- the problem, built once
