@@ -21,12 +21,12 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
+from algorithms import controller_setup as setup
 from algorithms import gp
 from algorithms.base import option, parse_options, positive
 from algorithms.evaluation import evaluate
 from algorithms.gp_mpc import data
 from algorithms.gp_mpc.model import PlanUncertainty, fit_model_error, learned_model
-from algorithms.lqr import discrete_lqr_gain
 from algorithms.mpc.nonlinear import NonlinearMPC
 from algorithms.mpc.nonlinear import Options as NMPCOptions
 
@@ -88,9 +88,17 @@ class GPMPC(NonlinearMPC):
         self.gp_options = opts
         self.posterior = posterior
         super().__init__(env, prior_params, nmpc, prediction_model=learned_model(prior_fd, posterior), tightened=True)
-        goal = np.asarray(prior_params.goal, dtype=np.float64)
-        lin = self.model.linearize(goal, self.u_eq)
-        self.K, _ = discrete_lqr_gain(lin.Ad, lin.Bd, self.Q, self.R)
+        # The ancillary feedback of the uncertainty propagation: the prior's LQR about the goal.
+        self.K, _ = setup.goal_lqr(
+            env,
+            prior_params,
+            self.model,
+            self.Q,
+            self.R,
+            PATH,
+            field="q_diag",
+            hint="the uncertainty propagation needs one;",
+        )
         sigma0 = opts.initial_std**2 * np.eye(self.nx)
         self.uncertainty = PlanUncertainty(self.fd, posterior, self.K, opts.prob, sigma0, self.model.g)
 
