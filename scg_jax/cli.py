@@ -754,14 +754,14 @@ def _run_train(args: argparse.Namespace, console) -> int:
     except TrainingInterrupted as stop:
         resume = _train_command_line(args, resume=True, overwrite=False)
         if stop.checkpoint is None:
-            console.print(
-                f"interrupted before the first iteration completed; nothing saved. Start again with:\n{resume}"
-            )
+            message = f"interrupted before the first iteration completed; nothing saved. Start again with:\n{resume}"
         else:
-            console.print(
+            message = (
                 f"interrupted: iteration {stop.iteration}/{stop.num_iterations} saved in {stop.checkpoint}\n"
                 f"resume with:\n{resume}"
             )
+        # Not wrapped and no markup: the command must survive copy and paste ([...] in --set values included).
+        console.print(message, soft_wrap=True, markup=False, highlight=False)
         return 130  # the shell's status for a process ended by Ctrl-C (128 + SIGINT)
     except ValueError as error:  # a checkpoint that cannot be continued: names the settings that differ
         message = str(error)

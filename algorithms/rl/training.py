@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import csv as csv_lib
 import dataclasses
-import difflib
 import io
 import math
 import sys
@@ -269,6 +268,17 @@ def config_differences(saved: dict, current: dict, ignore: tuple[str, ...] = ())
     return differences
 
 
+def _env_section(config_text: str) -> dict:
+    """The ``env`` mapping of a stored config text (the whole text under ``"(text)"`` if it is not such YAML)."""
+    import yaml
+
+    try:
+        section = (yaml.safe_load(config_text) or {}).get("env")
+    except (yaml.YAMLError, AttributeError):
+        section = None
+    return section if isinstance(section, dict) else {"(text)": config_text}
+
+
 def _check_resumable(meta: dict, checkpoint_file: Path, learner: Learner, config: dict, env_config) -> None:
     """ValueError naming what keeps the checkpoint ``meta`` from being continued by ``learner`` with ``config``."""
     saved_algo = meta.get("algo")
@@ -284,16 +294,13 @@ def _check_resumable(meta: dict, checkpoint_file: Path, learner: Learner, config
             f"Use the same training.{learner.name} settings (only total_env_steps may be raised) or another folder"
         )
     saved_env, iteration = meta.get("env_config"), int(meta.get("iteration", 0))
-    if saved_env is not None and env_config is not None and saved_env != env_config:
-        changed = [
-            line
-            for line in difflib.unified_diff(saved_env.splitlines(), env_config.splitlines(), lineterm="", n=0)
-            if line[:1] in "+-" and not line.startswith(("+++", "---"))
-        ]
-        raise ValueError(
-            f"resume: {checkpoint_file} was trained on another env config (checkpoint '-', now '+': "
-            f"{' | '.join(changed[:6])}); use the same env settings or another folder"
-        )
+    if saved_env is not None and env_config is not None:
+        env_differences = config_differences(_env_section(saved_env), _env_section(env_config))
+        if env_differences:
+            raise ValueError(
+                f"resume: {checkpoint_file} was trained on another env: "
+                f"{'; '.join('env.' + line for line in env_differences)}. Use the same env settings or another folder"
+            )
     if iteration > learner.num_iterations:
         raise ValueError(
             f"resume: {checkpoint_file} is at iteration {iteration} ({meta.get('env_steps')} env steps), beyond "
