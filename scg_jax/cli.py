@@ -767,8 +767,18 @@ def _run_train(args: argparse.Namespace, console) -> int:
         message = str(error)
         raise _UsageError(f"argument --resume: {message.removeprefix('resume: ')}") from None
     policy = load_policy(args.out, env, params)
-    with console.status(f"evaluating the trained policy on {args.eval_episodes} episodes"):
-        evaluation = evaluate(env, params, policy, eval_key, args.eval_episodes)
+    try:
+        with console.status(f"evaluating the trained policy on {args.eval_episodes} episodes"):
+            evaluation = evaluate(env, params, policy, eval_key, args.eval_episodes)
+    except KeyboardInterrupt:
+        console.print(
+            f"interrupted during the final evaluation; the trained policy is saved in {args.out} (evaluate it with "
+            f"scg-jax eval --controller {args.out})",
+            soft_wrap=True,
+            markup=False,
+            highlight=False,
+        )
+        return 130
     record = {
         "command": "train",
         "algo": args.algo,

@@ -2,7 +2,8 @@
 
 One iteration:
 
-1. roll out ``rollout_length`` steps on ``num_envs`` copies with the current stochastic policy; observations are
+1. roll out ``rollout_length`` steps on ``num_envs`` copies with the current stochastic policy (the learners' shared
+   ``algorithms.rl.collector``); observations are
    normalised with the running statistics *as they were at the start of the iteration* and stored normalised, so
    the stored log-probabilities are exactly those the optimisation later recomputes (the statistics are updated
    with the raw observations after the rollout);
@@ -309,7 +310,8 @@ def make_train(config, env):
 
     Returns:
         ``train(key, params) -> (runner_state, metrics)``: ``config.num_iterations`` iterations from
-        ``init(key, params)``; ``metrics`` is a dict of (num_iterations,) arrays (see ``update``). Jit it once and
+        ``init(key, params)``; ``metrics`` is a dict of (num_iterations,) arrays (see ``update``; ``env_steps`` is an
+        ``algorithms.rl.counter.Count``, exact past 2^31: ``count_value`` gives the integers). Jit it once and
         ``jax.vmap`` it over keys for several seeds (``params`` unbatched, or batched with ``in_axes`` for
         sweeps).
     """

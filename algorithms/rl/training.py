@@ -421,9 +421,13 @@ def run_training(
 
     max_chunk = min(total, int(chunk) if chunk is not None else 1000)
     compile_start = time.perf_counter()
-    if iteration < total:  # a finished run resumed has nothing to compile
-        runner = _make_chunk_runner(learner, max_chunk)
-        compiled = runner.lower(runner_state, params, jnp.int32(1)).compile()
+    try:
+        if iteration < total:  # a finished run resumed has nothing to compile
+            runner = _make_chunk_runner(learner, max_chunk)
+            compiled = runner.lower(runner_state, params, jnp.int32(1)).compile()
+    except KeyboardInterrupt:  # Ctrl-C while compiling: nothing new to save
+        saved = out_dir / f"{CHECKPOINT_NAME}.msgpack"
+        raise TrainingInterrupted(out_dir, iteration, total, saved if saved.exists() else None) from None
     compile_s = time.perf_counter() - compile_start
 
     csv_path = out_dir / CSV_NAME

@@ -1,8 +1,9 @@
 """Soft actor-critic in JAX: the whole training loop is one pure function of a key and the env params.
 
 One *iteration* collects ``rollout_steps`` control steps in each of the ``num_envs`` auto-resetting copies
-(``algorithms.rl.envs.TrainEnv``, actions in [-1, 1]), writes the transitions to the replay buffer, merges their
-observations into the running normaliser, then takes ``utd * num_envs * rollout_steps`` gradient steps. Each
+(``algorithms.rl.envs.TrainEnv``, actions in [-1, 1], through the learners' shared ``algorithms.rl.collector``,
+which also merges the observations into the running normaliser), writes the transitions to the replay buffer, then
+takes ``utd * num_envs * rollout_steps`` gradient steps. Each
 gradient step samples a batch uniformly from the buffer and updates, in this order, the twin critics (soft Bellman
 target from the Polyak-averaged target critics, no bootstrapping where the episode *terminated*; a time-limit
 truncation bootstraps from the stored final observation), the actor (reparameterised tanh-Gaussian, against the
@@ -333,7 +334,8 @@ def make_train(config: Config | Mapping | None, env) -> Callable:
 
     Returns:
         ``train``: ``key`` a PRNG key, ``params`` unbatched ``EnvParams``; ``metrics`` a dict of
-        (num_iterations,) arrays: ``env_steps``, ``grad_steps``, ``episode_return``, ``episode_cost``,
+        (num_iterations,) arrays: ``env_steps``, ``grad_steps`` (``algorithms.rl.counter.Count``s of (num_iterations,)
+        uint32 words; ``count_value`` gives the exact integers), ``episode_return``, ``episode_cost``,
         ``episode_rmse``, ``episode_length``, ``episodes_finished`` and the means over the iteration's gradient
         steps of ``critic_loss``, ``actor_loss``, ``alpha_loss``, ``alpha``, ``entropy``, ``q_mean`` (0 during
         warm-up).
