@@ -3,6 +3,7 @@ env's episode bookkeeping, the collector, exact step counters, and ``run_trainin
 = N/2, then N/2 resumed), interrupt, extension, refusals and learning-curve conventions."""
 
 import csv
+import inspect
 import json
 
 import jax
@@ -29,6 +30,7 @@ from algorithms.rl.policy import load_policy, trained_system
 from algorithms.rl.training import TrainingInterrupted, rmse_label, run_training
 from algorithms.sac import make_learner as sac_make_learner
 from algorithms.sac.replay import ReplayBuffer
+from scg_jax.rollout import auto_reset_step
 
 
 # --------------------------------------------------------------------------------------------- normalisation
@@ -473,3 +475,27 @@ def test_collector_records_what_every_learner_needs():
         np.testing.assert_allclose(a, b, rtol=1e-6)
     np.testing.assert_array_equal(state.obs_stats.count, 24.0)
     np.testing.assert_array_equal(state.episode_stats.episode_length, 2.0)
+
+
+_FORWARDS_ADVERSARY = "adversary" in inspect.signature(auto_reset_step).parameters
+
+
+@pytest.mark.skipif(not _FORWARDS_ADVERSARY, reason="needs scg_jax.rollout.auto_reset_step(..., adversary=...)")
+def test_collector_passes_the_adversary_input_to_the_env():
+    """An adversary on the action channel (scale 2 N): with the protagonist's action 0 and the adversary's +1 (times
+    the scale, clipped to [-1, 1]), the applied force is 2 N; it is stored with the transitions."""
+    env = scg_jax.make("cartpole", adversary={"channel": "action", "scale": 2.0})
+    params = env.default_params
+    train_env = make_train_env(env, 3)
+
+    def act(obs, key):
+        return ActOutput(jnp.zeros((3, 1)), {}, adversary=jnp.full((3, 1), 1.5))
+
+    @jax.jit
+    def run(key):
+        state = init_collector(train_env, key, params)
+        return collect(train_env, params, state, act, jax.random.key(1), 4, info_keys=("u",))
+
+    _, steps, _ = run(jax.random.key(0))
+    np.testing.assert_allclose(steps.info["u"], 2.0, rtol=1e-6)
+    np.testing.assert_array_equal(steps.adversary, 1.5)
