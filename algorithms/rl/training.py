@@ -305,7 +305,7 @@ def _check_resumable(meta: dict, checkpoint_file: Path, learner: Learner, config
         raise ValueError(
             f"resume: {checkpoint_file} is at iteration {iteration} ({meta.get('env_steps')} env steps), beyond "
             f"this budget of {learner.num_iterations} iterations (training.{learner.name}.total_env_steps = "
-            f"{config.get('total_env_steps')}); the step budget can only be raised"
+            f"{config.get('total_env_steps')}); a resumed run's budget may be raised, not set below where it stands"
         )
 
 
