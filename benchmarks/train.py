@@ -101,8 +101,8 @@ def throughput(env, params, cfg, algo: str, batch: int, iterations: int, repeats
     update = jax.jit(learner.update)
     # Past SAC's random-action warm-up (iterations without gradient steps), so the timed iterations learn.
     for _ in range(max(1, getattr(config, "warmup_iterations", 0))):
-        state, metrics = update(state, params)
-    steps_per_iteration = int(update(state, params)[1]["env_steps"]) - int(metrics["env_steps"])
+        state, _ = update(state, params)
+    steps_per_iteration = learner.steps_per_iteration
     run = _update_runner(learner, iterations)
     start = time.perf_counter()
     compiled = run.lower(state, params).compile()

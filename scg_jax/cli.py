@@ -608,27 +608,115 @@ def _run_compare(args: argparse.Namespace, console) -> int:
 LEARNERS = ("ppo", "sac")
 
 
+def _positive_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (np.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text!r}")
+    return value
+
+
 def _add_train_parser(subparsers) -> argparse.ArgumentParser:
     parser = subparsers.add_parser(
         "train",
         help="train PPO or SAC on parallel copies of a config's env; save the policy, learning curve and metrics",
         description=(
             "Train a JAX learner with the hyperparameters of the config's training.ALGO section (defaults where "
-            "absent) on the env of the config, with its randomisation and disturbances. Shows progress; writes to "
-            "--out the policy (policy.msgpack/json), checkpoint.msgpack/json (resumable with --resume), "
-            "progress.csv and learning_curve.png, then evaluates the policy like scg-jax eval and writes "
-            "metrics.json."
+            "absent) on the env of the config, with its randomisation and disturbances. Shows progress (a bar on a "
+            "terminal, a plain line every --progress-interval seconds in a log); writes to --out the policy "
+            "(policy.msgpack/json), checkpoint.msgpack/json (every --checkpoint-interval seconds, at the end and on "
+            "Ctrl-C; continue with --resume), progress.csv and learning_curve.png, then evaluates the policy like "
+            "scg-jax eval and writes metrics.json. A folder that already holds a run is refused unless --resume "
+            "or --overwrite is given."
         ),
     )
     _add_env_arguments(parser)
     parser.add_argument("--algo", required=True, choices=LEARNERS, help="learner")
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
     parser.add_argument("--seed", type=int, default=0, help="PRNG seed; same seed, same policy (default: 0)")
-    parser.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.* when present")
+    run = parser.add_mutually_exclusive_group()
+    run.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run in DIR from its checkpoint (same algo and settings; training.ALGO.total_env_steps "
+        "may be raised to extend a finished run); bit-identical to an uninterrupted run",
+    )
+    run.add_argument("--overwrite", action="store_true", help="replace the run already in DIR")
+    parser.add_argument(
+        "--checkpoint-interval",
+        type=_positive_seconds,
+        default=60.0,
+        metavar="SECONDS",
+        help="save a checkpoint every this many seconds of training (default: 60; also at the end and on Ctrl-C)",
+    )
+    parser.add_argument(
+        "--progress-interval",
+        type=_positive_seconds,
+        default=10.0,
+        metavar="SECONDS",
+        help="when stdout is not a terminal, print a progress line every this many seconds (default: 10)",
+    )
     parser.add_argument(
         "--eval-episodes", type=_positive_int, default=16, help="episodes of the final evaluation (default: 16)"
     )
+    parser.set_defaults(_train_parser=parser)
     return parser
+
+
+def _train_command_line(args: argparse.Namespace, **changes) -> str:
+    """The ``scg-jax train`` command line of ``args`` (options left at their defaults omitted), with ``changes``
+    (``dest -> value``) applied: what to type to resume an interrupted run."""
+    import shlex
+
+    parser = args._train_parser
+    values = {**vars(args), **changes}
+    words = ["scg-jax", "train"]
+    for action in parser._actions:
+        if not action.option_strings or action.dest in ("help", "_train_parser"):
+            continue
+        value = values.get(action.dest)
+        if value is None or value == action.default:
+            continue
+        flag = action.option_strings[-1]
+        if isinstance(action, argparse._StoreTrueAction):
+            words.append(flag)
+        elif isinstance(value, list) and action.dest == "offset":
+            words += [flag, ",".join(f"{v:g}" for v in value)]
+        elif isinstance(value, list):
+            for item in value:
+                words += [flag, str(item)]
+        else:
+            words += [flag, str(value)]
+    return shlex.join(words)
+
+
+def _check_train_folder(args: argparse.Namespace) -> None:
+    """Refuse, naming the flags, a --out that holds a run without --resume/--overwrite, and a --resume of another
+    algorithm's run."""
+    from algorithms.rl.checkpoint import load_metadata
+    from algorithms.rl.training import CHECKPOINT_NAME, existing_run_files
+
+    existing = existing_run_files(args.out)
+    checkpoint = args.out / f"{CHECKPOINT_NAME}.json"
+    if args.resume and checkpoint.exists():
+        saved_algo = load_metadata(args.out, CHECKPOINT_NAME).get("algo")
+        if saved_algo != args.algo:
+            raise _UsageError(
+                f"argument --resume: {args.out} holds a {saved_algo} run, not {args.algo}; resume it with --algo "
+                f"{saved_algo}, or train {args.algo} into another --out (or replace the run with --overwrite)"
+            )
+    elif existing and not args.overwrite:
+        what = "has no checkpoint to resume but holds" if args.resume else "already holds"
+        raise _UsageError(
+            f"argument --out: {args.out} {what} a training run ({', '.join(existing)}); "
+            + (
+                "pass --overwrite to replace it"
+                if args.resume
+                else "pass --resume to continue it or --overwrite to replace it"
+            )
+        )
 
 
 def _run_train(args: argparse.Namespace, console) -> int:
@@ -637,7 +725,7 @@ def _run_train(args: argparse.Namespace, console) -> int:
     from algorithms.base import parse_options
     from algorithms.evaluation import evaluate, evaluation_record
     from algorithms.rl.policy import algorithm_module, load_policy
-    from algorithms.rl.training import run_training
+    from algorithms.rl.training import TrainingInterrupted, run_training
     from scg_jax.config import dump_config
 
     env, params, cfg = _make_env(args)
@@ -648,17 +736,51 @@ def _run_train(args: argparse.Namespace, console) -> int:
         learner = algorithm_module(args.algo, "make_learner")(config, env)
     except ValueError as error:
         raise _UsageError(str(error)) from None
+    _check_train_folder(args)
     key = jax.random.key(args.seed)
     train_key, eval_key = jax.random.split(key)
     try:
         summary = run_training(
-            learner, env, params, train_key, args.out, resume=args.resume, progress=True, env_config=dump_config(cfg)
+            learner,
+            env,
+            params,
+            train_key,
+            args.out,
+            resume=args.resume,
+            overwrite=args.overwrite,
+            checkpoint_seconds=args.checkpoint_interval,
+            progress=True,
+            progress_seconds=args.progress_interval,
+            env_config=dump_config(cfg),
         )
-    except ValueError as error:  # e.g. resuming a checkpoint of another algorithm or config
-        raise _UsageError(f"argument --resume: {error}") from None
+    except TrainingInterrupted as stop:
+        resume = _train_command_line(args, resume=True, overwrite=False)
+        if stop.checkpoint is None:
+            message = f"interrupted before the first iteration completed; nothing saved. Start again with:\n{resume}"
+        else:
+            message = (
+                f"interrupted: iteration {stop.iteration}/{stop.num_iterations} saved in {stop.checkpoint}\n"
+                f"resume with:\n{resume}"
+            )
+        # Not wrapped and no markup: the command must survive copy and paste ([...] in --set values included).
+        console.print(message, soft_wrap=True, markup=False, highlight=False)
+        return 130  # the shell's status for a process ended by Ctrl-C (128 + SIGINT)
+    except ValueError as error:  # a checkpoint that cannot be continued: names the settings that differ
+        message = str(error)
+        raise _UsageError(f"argument --resume: {message.removeprefix('resume: ')}") from None
     policy = load_policy(args.out, env, params)
-    with console.status(f"evaluating the trained policy on {args.eval_episodes} episodes"):
-        evaluation = evaluate(env, params, policy, eval_key, args.eval_episodes)
+    try:
+        with console.status(f"evaluating the trained policy on {args.eval_episodes} episodes"):
+            evaluation = evaluate(env, params, policy, eval_key, args.eval_episodes)
+    except KeyboardInterrupt:
+        console.print(
+            f"interrupted during the final evaluation; the trained policy is saved in {args.out} (evaluate it with "
+            f"scg-jax eval --controller {args.out})",
+            soft_wrap=True,
+            markup=False,
+            highlight=False,
+        )
+        return 130
     record = {
         "command": "train",
         "algo": args.algo,

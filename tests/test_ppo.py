@@ -12,6 +12,7 @@ import scipy.stats
 
 import scg_jax
 from algorithms.ppo import Config, losses, make_learner, make_train
+from algorithms.rl.counter import count_value
 from algorithms.rl.envs import policy_action_to_input
 from algorithms.rl.normalization import init_stats
 from algorithms.rl.policy import load_policy
@@ -271,7 +272,7 @@ def test_vmapped_seeds_give_different_policies_and_a_repeated_seed_the_same(seed
         # Different seeds see different episodes: the observation statistics differ too.
         assert float(np.max(np.abs(state.obs_stats.mean[i] - state.obs_stats.mean[j]))) > 1e-4, (i, j)
     # The whole budget ran: 4 iterations of 8 x 16 steps, each copy's observations merged into the statistics.
-    np.testing.assert_array_equal(metrics["env_steps"], np.tile([128, 256, 384, 512], (NUM_SEEDS + 1, 1)))
+    np.testing.assert_array_equal(count_value(metrics["env_steps"]), np.tile([128, 256, 384, 512], (NUM_SEEDS + 1, 1)))
     np.testing.assert_array_equal(state.obs_stats.count, 512.0)
     # The step size decays linearly from 1e-3 to 0 over the 4 updates (one per iteration): the metric is the
     # schedule after each update.

@@ -1,7 +1,9 @@
 """Shared RL infrastructure: running observation statistics against numpy, checkpoints of any pytree, the training
-env's episode bookkeeping, and ``run_training``'s resume (N iterations in one go = N/2, then N/2 resumed)."""
+env's episode bookkeeping, the collector, exact step counters, and ``run_training``'s resume (N iterations in one go
+= N/2, then N/2 resumed), interrupt, extension, refusals and learning-curve conventions."""
 
 import csv
+import inspect
 import json
 
 import jax
@@ -13,6 +15,8 @@ from flax import serialization
 import scg_jax
 from algorithms.ppo import make_learner
 from algorithms.rl.checkpoint import load_checkpoint, load_metadata, save_checkpoint
+from algorithms.rl.collector import ActOutput, collect, init_collector
+from algorithms.rl.counter import Count, add_count, count_at_least, count_to_float, count_value, zero_count
 from algorithms.rl.envs import (
     episode_means,
     init_episode_stats,
@@ -22,8 +26,11 @@ from algorithms.rl.envs import (
     update_episode_stats,
 )
 from algorithms.rl.normalization import RunningStats, init_stats, normalize, update_stats
-from algorithms.rl.training import run_training
+from algorithms.rl.policy import load_policy, trained_system
+from algorithms.rl.training import TrainingInterrupted, rmse_label, run_training
+from algorithms.sac import make_learner as sac_make_learner
 from algorithms.sac.replay import ReplayBuffer
+from scg_jax.rollout import auto_reset_step
 
 
 # --------------------------------------------------------------------------------------------- normalisation
@@ -265,7 +272,7 @@ def test_resumed_training_is_bit_identical_to_an_uninterrupted_run(resume_runs):
     assert whole_meta["iteration"] == split_meta["iteration"] == ITERATIONS
     for a, b in zip(jax.tree.leaves(whole_state), jax.tree.leaves(split_state), strict=True):
         np.testing.assert_array_equal(a, b)
-    assert int(whole_state.env_steps) == 768
+    assert count_value(whole_state.env_steps) == 768
     assert (whole_dir / "policy.msgpack").read_bytes() == (split_dir / "policy.msgpack").read_bytes()
     # progress.csv: one row per iteration, the same metrics (wall times aside).
     whole_header, whole_rows = _read_csv(whole_dir / "progress.csv")
@@ -282,3 +289,213 @@ def test_resume_with_another_config_is_refused(resume_runs, tmp_path):
     other = make_learner({**TINY_PPO, "learning_rate": 3e-4}, env)
     with pytest.raises(ValueError, match="resume: .*checkpoint.json was written by 'ppo' with another config"):
         run_training(other, env, params, key, split_dir, resume=True, progress=False)
+
+
+def test_resume_with_another_config_names_the_settings_that_differ(resume_runs):
+    env, params, key, _, _, (split_dir, *_) = resume_runs
+    other = make_learner({**TINY_PPO, "learning_rate": 3e-4, "num_epochs": 3}, env)
+    with pytest.raises(ValueError) as error:
+        run_training(other, env, params, key, split_dir, resume=True, progress=False)
+    message = str(error.value)
+    assert "learning_rate: 0.001 in the checkpoint, 0.0003 now" in message
+    assert "num_epochs: 2 in the checkpoint, 3 now" in message
+    assert "total_env_steps:" not in message  # the same budget: not listed
+
+
+def test_resume_of_another_algorithm_says_so(resume_runs):
+    env, params, key, _, _, (split_dir, *_) = resume_runs
+    sac = sac_make_learner({"num_envs": 8, "total_env_steps": 64, "batch_size": 16, "buffer_size": 64}, env)
+    with pytest.raises(ValueError, match=r"^resume: .*checkpoint.json is a 'ppo' run, not 'sac'; resume it with algo"):
+        run_training(sac, env, params, key, split_dir, resume=True, progress=False)
+
+
+def test_a_folder_holding_a_run_is_refused_unless_resume_or_overwrite(resume_runs, tmp_path):
+    env, params, key, learner, (whole_dir, _), _ = resume_runs
+    before = {name: (whole_dir / name).read_bytes() for name in ("checkpoint.json", "policy.msgpack")}
+    with pytest.raises(ValueError, match=r"^out_dir: .* already holds a training run \(checkpoint.json, .*use resume"):
+        run_training(learner, env, params, key, whole_dir, progress=False)
+    with pytest.raises(ValueError, match="^resume, overwrite: give one of them"):
+        run_training(learner, env, params, key, whole_dir, resume=True, overwrite=True, progress=False)
+    # Nothing was touched by the refusals.
+    assert before == {name: (whole_dir / name).read_bytes() for name in before}
+    # overwrite replaces the run: a shorter run leaves only its own files (no stale metrics.json, 3 CSV rows).
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    for path in whole_dir.iterdir():
+        (copy / path.name).write_bytes(path.read_bytes())
+    (copy / "metrics.json").write_text("{}")
+    (copy / "notes.txt").write_text("mine")
+    half = learner._replace(num_iterations=ITERATIONS // 2)
+    result = run_training(half, env, params, key, copy, overwrite=True, progress=False)
+    assert result["iterations"] == 3 and not (copy / "metrics.json").exists()
+    assert (copy / "notes.txt").read_text() == "mine"  # only the run's own files are removed
+    assert len(_read_csv(copy / "progress.csv")[1]) == 3
+
+
+def test_interrupt_saves_a_checkpoint_and_the_resumed_run_is_bit_identical(resume_runs, tmp_path, capsys):
+    """Ctrl-C (a KeyboardInterrupt raised after the second iteration) saves that iteration although no checkpoint
+    was due (the time-based interval is an hour); resuming completes the run bit-identically. Progress printed
+    to a pipe (not a terminal) is a plain line per interval (0 s here: every chunk)."""
+    env, params, key, learner, (whole_dir, _), _ = resume_runs
+    out = tmp_path / "interrupted"
+
+    def interrupt(iteration):
+        if iteration == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(TrainingInterrupted) as stop:
+        run_training(
+            learner, env, params, key, out, chunk=1, checkpoint_seconds=3600.0, progress_seconds=0.0, on_chunk=interrupt
+        )
+    assert stop.value.iteration == 2 and stop.value.checkpoint == out / "checkpoint.msgpack"
+    assert load_metadata(out, "checkpoint")["iteration"] == 2
+    assert [row[0] for row in _read_csv(out / "progress.csv")[1]] == ["1", "2"]
+    assert not (out / "policy.json").exists()
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[0].startswith("ppo: iteration 1/6 (16.7%), 128 env steps, ") and "remaining" in lines[0]
+    assert lines[1].startswith("ppo: iteration 2/6 (33.3%), 256 env steps, ")
+
+    result = run_training(learner, env, params, key, out, resume=True, progress=False)
+    assert result["resumed_from_iteration"] == 2 and result["iterations"] == ITERATIONS
+    assert (out / "policy.msgpack").read_bytes() == (whole_dir / "policy.msgpack").read_bytes()
+    drop_time = lambda rows: [row[:2] + row[3:] for row in rows]  # noqa: E731
+    assert drop_time(_read_csv(out / "progress.csv")[1]) == drop_time(_read_csv(whole_dir / "progress.csv")[1])
+
+
+def test_a_finished_run_is_extended_by_raising_the_budget(tmp_path):
+    """2 iterations, then resumed with a budget of 4: the same as 4 in one go (constant step size, so the schedule
+    does not depend on the budget). A budget below the checkpoint is refused."""
+    env = scg_jax.make("cartpole")
+    params, key = env.default_params, jax.random.key(3)
+    options = {**TINY_PPO, "lr_decay": False, "num_epochs": 1}
+    short = make_learner({**options, "total_env_steps": 256}, env)
+    long = make_learner({**options, "total_env_steps": 512}, env)
+    run_training(short, env, params, key, tmp_path / "split", progress=False)
+    extended = run_training(long, env, params, key, tmp_path / "split", resume=True, progress=False)
+    whole = run_training(long, env, params, key, tmp_path / "whole", progress=False)
+    assert extended["resumed_from_iteration"] == 2 and extended["iterations"] == whole["iterations"] == 4
+    assert extended["env_steps"] == 512
+    assert (tmp_path / "split" / "policy.msgpack").read_bytes() == (tmp_path / "whole" / "policy.msgpack").read_bytes()
+    tiny = make_learner({**options, "total_env_steps": 128}, env)
+    with pytest.raises(ValueError, match=r"is at iteration 4 \(512 env steps\), beyond this budget of 1 iterations"):
+        run_training(tiny, env, params, key, tmp_path / "split", resume=True, progress=False)
+
+
+def test_learning_curve_has_nan_before_the_first_episode_ends(resume_runs):
+    _, _, _, _, (whole_dir, whole), _ = resume_runs
+    header, rows = _read_csv(whole_dir / "progress.csv")
+    column = {name: [row[i] for row in rows] for i, name in enumerate(header)}
+    finished = np.cumsum([float(v) for v in column["episodes_finished"]])
+    # 16 steps per copy per iteration: no 250-step episode can have ended in the first iteration.
+    assert finished[0] == 0
+    for name in ("episode_return", "episode_rmse", "episode_length", "episode_cost"):
+        values = np.array([float(v) for v in column[name]])
+        np.testing.assert_array_equal(np.isnan(values), finished == 0)
+        assert column[name][0] == "nan"
+    # The summary's JSON has null, not NaN, where no episode finished.
+    if finished[-1] == 0:
+        assert whole["final_metrics"]["episode_return"] is None
+
+
+def test_rmse_axis_label_has_units():
+    cartpole = scg_jax.make("cartpole")
+    assert rmse_label(cartpole, cartpole.default_params) == "RMSE (weighted state error, mixed units)"
+    quadrotor = scg_jax.make("quadrotor_2d")
+    assert rmse_label(quadrotor, quadrotor.default_params) == "RMSE (m)"
+
+
+def test_a_policy_refuses_another_system(resume_runs):
+    _, _, _, _, (whole_dir, _), _ = resume_runs
+    assert load_metadata(whole_dir, "policy")["system"] == "cartpole"
+    quadrotor = scg_jax.make("quadrotor_1d", obs_goal_horizon=1)  # 2 + 2 observations: the cart-pole's 4
+    assert quadrotor.observation_size == 4
+    with pytest.raises(ValueError, match="trained on the cartpole and cannot control the quadrotor_1d"):
+        load_policy(whole_dir, quadrotor, quadrotor.default_params)
+    # A policy file from before the system was recorded: its stored env config says it.
+    assert trained_system({"env_config": "env:\n  system: cartpole\n  task: stabilization\n"}) == "cartpole"
+    assert trained_system({}) is None
+
+
+# --------------------------------------------------------------------------------------------- counters
+def test_count_stays_exact_past_two_to_the_31_and_32():
+    @jax.jit
+    def advance(count, n):
+        # 5 additions of 2^30 - 1 + n: past 2^31 (int32's limit) and 2^32 (one word's).
+        return jax.lax.fori_loop(0, 5, lambda i, c: add_count(c, jnp.uint32(2**30 - 1) + n), count)
+
+    count = advance(zero_count(), jnp.uint32(3))
+    assert count_value(count) == 5 * (2**30 + 2) and int(count.hi) == 1
+    assert count_value(add_count(Count(jnp.uint32(0), jnp.uint32(2**32 - 1)), 1)) == 2**32
+    assert float(count_to_float(count)) == pytest.approx(5 * (2**30 + 2), rel=1e-7)
+    assert bool(count_at_least(count, 2**32 - 1)) and not bool(count_at_least(zero_count(), 1))
+    with pytest.raises(ValueError, match=r"n must be in \[0, 2\^32\)"):
+        add_count(zero_count(), 2**32)
+    # Stacked (a scan's metrics): exact uint64 on the host.
+    stacked = Count(jnp.asarray([0, 2], jnp.uint32), jnp.asarray([5, 7], jnp.uint32))
+    np.testing.assert_array_equal(count_value(stacked), [5, 2 * 2**32 + 7])
+
+
+def test_a_learner_counts_env_steps_past_two_to_the_31(resume_runs):
+    env, params, key, learner, *_ = resume_runs
+    state = jax.jit(learner.init)(jax.random.key_data(key), params)
+    state = state._replace(env_steps=Count(jnp.uint32(0), jnp.uint32(2**31 - 64)))
+    state, metrics = jax.jit(learner.update)(state, params)
+    assert count_value(state.env_steps) == count_value(metrics["env_steps"]) == 2**31 + 64
+
+
+# --------------------------------------------------------------------------------------------- collector
+def test_collector_records_what_every_learner_needs():
+    """4 copies, 6 steps of a constant action: transitions (T, N, ...) with cost, info entries and the act's
+    extras; the normaliser holds exactly the observations acted on."""
+    bound = {"type": "abs_bound", "on": "input", "bound": 0.5}
+    env = scg_jax.make("cartpole", episode_len_sec=0.08, constraints=[bound])
+    params = env.default_params
+    train_env = make_train_env(env, 4)
+
+    def act(obs, key):
+        return ActOutput(jnp.full((4, 1), 0.3), {"obs_sum": jnp.sum(obs, axis=-1)})
+
+    @jax.jit
+    def run(key):
+        state = init_collector(train_env, key, params)
+        return collect(train_env, params, state, act, jax.random.key(1), 6, info_keys=("constraint_values",))
+
+    state, steps, episode = run(jax.random.key(0))
+    assert steps.obs.shape == (6, 4, 4) and steps.action.shape == (6, 4, 1) and steps.adversary is None
+    np.testing.assert_allclose(steps.extras["obs_sum"], np.sum(steps.obs, axis=-1), rtol=1e-6)
+    # Force 0.3 * 10 N = 3 N against a 0.5 N bound: every step violates, cost 1.
+    np.testing.assert_array_equal(steps.cost, 1.0)
+    assert steps.info["constraint_values"].shape[:2] == (6, 4)
+    # 4-step episodes: truncated at step 4, next_obs is the reached observation, obs the next episode's first.
+    np.testing.assert_array_equal(steps.truncated, np.tile((np.arange(6) == 3)[:, None], (1, 4)))
+    np.testing.assert_array_equal(steps.next_obs[:3], steps.obs[1:4])
+    assert float(episode["episodes_finished"]) == 4.0 and float(episode["episode_cost"]) == 4.0
+    expected = update_stats(init_stats(4), steps.obs)  # outside jit: equal up to rounding
+    for a, b in zip(state.obs_stats, expected, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-6)
+    np.testing.assert_array_equal(state.obs_stats.count, 24.0)
+    np.testing.assert_array_equal(state.episode_stats.episode_length, 2.0)
+
+
+_FORWARDS_ADVERSARY = "adversary" in inspect.signature(auto_reset_step).parameters
+
+
+@pytest.mark.skipif(not _FORWARDS_ADVERSARY, reason="needs scg_jax.rollout.auto_reset_step(..., adversary=...)")
+def test_collector_passes_the_adversary_input_to_the_env():
+    """An adversary on the action channel (scale 2 N): with the protagonist's action 0 and the adversary's +1 (times
+    the scale, clipped to [-1, 1]), the applied force is 2 N; it is stored with the transitions."""
+    env = scg_jax.make("cartpole", adversary={"channel": "action", "scale": 2.0})
+    params = env.default_params
+    train_env = make_train_env(env, 3)
+
+    def act(obs, key):
+        return ActOutput(jnp.zeros((3, 1)), {}, adversary=jnp.full((3, 1), 1.5))
+
+    @jax.jit
+    def run(key):
+        state = init_collector(train_env, key, params)
+        return collect(train_env, params, state, act, jax.random.key(1), 4, info_keys=("u",))
+
+    _, steps, _ = run(jax.random.key(0))
+    np.testing.assert_allclose(steps.info["u"], 2.0, rtol=1e-6)
+    np.testing.assert_array_equal(steps.adversary, 1.5)

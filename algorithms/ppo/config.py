@@ -9,16 +9,9 @@ from __future__ import annotations
 
 import dataclasses
 
-from algorithms.base import option, positive
+from algorithms.base import option
+from algorithms.rl.config import check_budget, check_fields, layer_sizes
 from algorithms.rl.networks import ACTIVATIONS
-
-
-def _sizes(path: str, value) -> tuple[int, ...]:
-    if value is None or len(value) == 0:
-        raise ValueError(f"{path}: expected a list of layer sizes, e.g. [64, 64]")
-    if any(v < 1 or not float(v).is_integer() for v in value):
-        raise ValueError(f"{path}: layer sizes must be positive integers, got {list(value)}")
-    return tuple(int(v) for v in value)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,29 +47,34 @@ class Config:
     )
 
     def _check(self, path: str) -> None:
-        for name in ("total_env_steps", "num_envs", "rollout_length", "num_epochs", "num_minibatches"):
-            positive(f"{path}.{name}", getattr(self, name))
-        for name in ("learning_rate", "max_grad_norm", "clip_eps", "reward_scale", "obs_clip", "action_scale"):
-            positive(f"{path}.{name}", getattr(self, name))
-        for name in ("gamma", "gae_lambda"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"{path}.{name}: must be in [0, 1], got {getattr(self, name)!r}")
-        for name in ("value_clip_eps", "vf_coef", "ent_coef"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
+        check_fields(
+            self,
+            path,
+            positive_fields=(
+                "total_env_steps",
+                "num_envs",
+                "rollout_length",
+                "num_epochs",
+                "num_minibatches",
+                "learning_rate",
+                "max_grad_norm",
+                "clip_eps",
+                "reward_scale",
+                "obs_clip",
+                "action_scale",
+            ),
+            nonnegative=("value_clip_eps", "vf_coef", "ent_coef"),
+            closed_unit=("gamma", "gae_lambda"),
+        )
         if self.batch_size % self.num_minibatches:
             raise ValueError(
                 f"{path}.num_minibatches: must divide the batch num_envs * rollout_length = {self.batch_size}, "
                 f"got {self.num_minibatches}"
             )
-        if self.total_env_steps < self.batch_size:
-            raise ValueError(
-                f"{path}.total_env_steps: must be at least one batch (num_envs * rollout_length = "
-                f"{self.batch_size}), got {self.total_env_steps}"
-            )
+        check_budget(path, self.total_env_steps, self.batch_size, "num_envs * rollout_length")
         # Layer sizes parse as floats (a tuple option); store them as ints.
-        object.__setattr__(self, "actor_hidden", _sizes(f"{path}.actor_hidden", self.actor_hidden))
-        object.__setattr__(self, "critic_hidden", _sizes(f"{path}.critic_hidden", self.critic_hidden))
+        object.__setattr__(self, "actor_hidden", layer_sizes(f"{path}.actor_hidden", self.actor_hidden))
+        object.__setattr__(self, "critic_hidden", layer_sizes(f"{path}.critic_hidden", self.critic_hidden))
 
     @property
     def batch_size(self) -> int:

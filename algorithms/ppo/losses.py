@@ -7,41 +7,27 @@ unclipped Gaussian sample the learner stored (exact, closed form), and the deter
 ``clip(mu, -1, 1)``. (tanh squashing would need a Jacobian correction and has no closed-form entropy; near the
 upright equilibrium the actions are small and the clip is rarely active.)
 
-All functions are pure ``jax.numpy`` and work on any leading batch shape.
+All functions are pure ``jax.numpy`` and work on any leading batch shape. The Gaussian's density and entropy are
+the learners' shared ones (``algorithms.rl.distributions``), re-exported here.
 """
 
 from __future__ import annotations
 
-import math
-
 import jax
 import jax.numpy as jnp
 
-LOG_2PI = math.log(2.0 * math.pi)
+from algorithms.rl.distributions import LOG_2PI, gaussian_entropy, gaussian_log_prob
 
-
-def gaussian_log_prob(mean, log_std, action):
-    """Log-density of ``action`` under ``N(mean, diag(exp(log_std))^2)``, summed over the last axis.
-
-    ``log p = sum_i [ -0.5 ((a_i - mu_i) / sigma_i)^2 - log sigma_i - 0.5 log(2 pi) ]``.
-
-    Args:
-        mean: (..., d). log_std: (d,) or (..., d). action: (..., d).
-
-    Returns:
-        (...) log-density (nats).
-    """
-    z = (action - mean) * jnp.exp(-log_std)
-    return jnp.sum(-0.5 * jnp.square(z) - log_std - 0.5 * LOG_2PI, axis=-1)
-
-
-def gaussian_entropy(log_std):
-    """Differential entropy of the diagonal Gaussian, ``sum_i (0.5 (1 + log(2 pi)) + log sigma_i)`` (nats).
-
-    Args:
-        log_std: (d,) or (..., d). Returns: (...).
-    """
-    return jnp.sum(0.5 * (1.0 + LOG_2PI) + log_std, axis=-1)
+__all__ = [
+    "LOG_2PI",
+    "clipped_surrogate_loss",
+    "gae",
+    "gaussian_entropy",
+    "gaussian_log_prob",
+    "normalize_advantages",
+    "ppo_loss",
+    "value_loss",
+]
 
 
 def gae(rewards, values, next_values, terminated, truncated, gamma: float, lam: float):

@@ -2,7 +2,8 @@
 
 One iteration:
 
-1. roll out ``rollout_length`` steps on ``num_envs`` copies with the current stochastic policy; observations are
+1. roll out ``rollout_length`` steps on ``num_envs`` copies with the current stochastic policy (the learners' shared
+   ``algorithms.rl.collector``); observations are
    normalised with the running statistics *as they were at the start of the iteration* and stored normalised, so
    the stored log-probabilities are exactly those the optimisation later recomputes (the statistics are updated
    with the raw observations after the rollout);
@@ -29,25 +30,21 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from algorithms.base import parse_options
 from algorithms.ppo import losses
 from algorithms.ppo.config import Config
-from algorithms.rl.envs import (
-    episode_means,
-    init_episode_stats,
-    initial_episode_means,
-    make_train_env,
-    update_episode_stats,
-)
-from algorithms.rl.networks import MLP
-from algorithms.rl.normalization import RunningStats, init_stats, normalize, update_stats
+from algorithms.rl.collector import ActOutput, CollectorState, collect, init_collector
+from algorithms.rl.config import parse_learner_config
+from algorithms.rl.counter import Count, add_count, zero_count
+from algorithms.rl.envs import make_train_env
+from algorithms.rl.networks import MLP, value_network
+from algorithms.rl.normalization import RunningStats, normalize
 from algorithms.rl.training import Learner, raw_key
 
 NAME = "ppo"
 
 
 class Transition(NamedTuple):
-    """What the rollout stores per step, (T, N, ...) after the scan.
+    """What an iteration learns from, (T, N, ...) (built from the collector's ``Transitions``).
 
     Attributes:
         obs: normalised observation acted on. action: unclipped Gaussian sample (N, d). log_prob: its log-density.
@@ -70,32 +67,30 @@ class RunnerState(NamedTuple):
 
     Attributes:
         params: ``{"actor": flax params, "critic": flax params, "log_std": (d,)}``. opt_state: optax state.
-        obs_stats: ``RunningStats`` of raw observations. env_state: batched ``EnvState``. obs: (N, obs) raw
-        observations to act on next. episode_stats: per-copy running sums. last_episode: the latest
-        ``episode_means`` (repeated when no episode finishes). key: raw PRNG key. env_steps: int32 total so far.
+        collector: ``algorithms.rl.collector.CollectorState`` (batched env state, observations to act on next,
+        episode sums, the last episode means, the observation normaliser). key: raw PRNG key.
+        env_steps: ``Count`` (exact past 2^31) of env steps so far.
     """
 
     params: Any
     opt_state: Any
-    obs_stats: RunningStats
-    env_state: Any
-    obs: Any
-    episode_stats: Any
-    last_episode: dict
+    collector: CollectorState
     key: Any
-    env_steps: Any
+    env_steps: Count
+
+    @property
+    def obs_stats(self) -> RunningStats:
+        """The observation normaliser (``collector.obs_stats``)."""
+        return self.collector.obs_stats
 
 
 def _parse(config) -> Config:
-    config = parse_options(Config, config, "training.ppo")
-    config._check("training.ppo")  # also for a Config built directly (layer sizes as ints, cross-field checks)
-    return config
+    return parse_learner_config(Config, config, "training.ppo")
 
 
 def _networks(config: Config, action_size: int):
     actor = MLP((*config.actor_hidden, action_size), config.activation, final_scale=0.01)
-    critic = MLP((*config.critic_hidden, 1), config.activation, final_scale=1.0)
-    return actor, critic
+    return actor, value_network(config.critic_hidden, config.activation)
 
 
 def _optimizer(config: Config):
@@ -123,7 +118,7 @@ def _functions(config: Config, env):
     train_env = make_train_env(env, config.num_envs, config.action_scale)
     actor, critic = _networks(config, train_env.action_size)
     optimizer = _optimizer(config)
-    n, batch = config.num_envs, config.batch_size
+    batch = config.batch_size
     minibatch = batch // config.num_minibatches
     value_clip = config.value_clip_eps if config.value_clip_eps > 0 else None
 
@@ -142,47 +137,51 @@ def _functions(config: Config, env):
             "critic": critic.init(key_critic, dummy),
             "log_std": jnp.full((train_env.action_size,), config.init_log_std, jnp.float32),
         }
-        obs, env_state = train_env.reset(key_env, params)
         return RunnerState(
             params=net_params,
             opt_state=optimizer.init(net_params),
-            obs_stats=init_stats(train_env.obs_size, obs.dtype),
-            env_state=env_state,
-            obs=obs,
-            episode_stats=init_episode_stats(n, jnp.float32),
-            last_episode=initial_episode_means(jnp.float32),
+            collector=init_collector(train_env, key_env, params),
             key=key,
-            env_steps=jnp.zeros((), jnp.int32),
+            env_steps=zero_count(),
         )
 
     def rollout(runner: RunnerState, params, key):
+        """The collector under the current stochastic policy; observations normalised with the statistics as
+        they were at the start of the iteration (the collector merges the new ones after the scan)."""
         net = runner.params
+        stats = runner.collector.obs_stats
         std = jnp.exp(net["log_std"])
 
-        def step(carry, step_key):
-            env_state, raw_obs, episode_stats = carry
-            obs = observe(runner.obs_stats, raw_obs)
+        def act(raw_obs, step_key) -> ActOutput:
+            obs = observe(stats, raw_obs)
             mean = actor.apply(net["actor"], obs)
             action = mean + std * jax.random.normal(step_key, mean.shape, mean.dtype)
-            out = train_env.step(env_state, action, params)
-            next_value = value_fn(net["critic"], observe(runner.obs_stats, out.final_obs))
-            episode_stats, finished = update_episode_stats(episode_stats, out)
-            transition = Transition(
-                obs=obs,
-                action=action,
-                log_prob=losses.gaussian_log_prob(mean, net["log_std"], action),
-                value=value_fn(net["critic"], obs),
-                next_value=next_value,
-                reward=out.reward * config.reward_scale,
-                terminated=out.terminated,
-                truncated=out.truncated,
-            )
-            return (out.state, out.obs, episode_stats), (transition, finished, raw_obs)
+            extras = {
+                "log_prob": losses.gaussian_log_prob(mean, net["log_std"], action),
+                "value": value_fn(net["critic"], obs),
+            }
+            return ActOutput(action, extras)
 
-        keys = jax.random.split(key, config.rollout_length)
-        carry = (runner.env_state, runner.obs, runner.episode_stats)
-        (env_state, obs, episode_stats), (traj, finished, raw_obs) = jax.lax.scan(step, carry, keys)
-        return env_state, obs, episode_stats, traj, finished, raw_obs
+        collector, steps, episode = collect(
+            train_env,
+            params,
+            runner.collector,
+            act,
+            key,
+            config.rollout_length,
+            update_normalizer=config.normalize_observations,
+        )
+        traj = Transition(
+            obs=observe(stats, steps.obs),
+            action=steps.action,
+            log_prob=steps.extras["log_prob"],
+            value=steps.extras["value"],
+            next_value=value_fn(net["critic"], observe(stats, steps.next_obs)),
+            reward=steps.reward * config.reward_scale,
+            terminated=steps.terminated,
+            truncated=steps.truncated,
+        )
+        return collector, traj, episode
 
     def loss_fn(net_params, mb):
         mean = actor.apply(net_params["actor"], mb["obs"])
@@ -223,7 +222,7 @@ def _functions(config: Config, env):
 
     def update(runner: RunnerState, params) -> tuple[RunnerState, dict]:
         key, key_rollout, key_sgd = jax.random.split(runner.key, 3)
-        env_state, obs, episode_stats, traj, finished, raw_obs = rollout(runner, params, key_rollout)
+        collector, traj, episode = rollout(runner, params, key_rollout)
         advantages, returns = losses.gae(
             traj.reward,
             traj.value,
@@ -247,9 +246,7 @@ def _functions(config: Config, env):
             (runner.params, runner.opt_state),
             jax.random.split(key_sgd, config.num_epochs),
         )
-        obs_stats = update_stats(runner.obs_stats, raw_obs) if config.normalize_observations else runner.obs_stats
-        episode = episode_means(finished, runner.last_episode)
-        env_steps = runner.env_steps + batch
+        env_steps = add_count(runner.env_steps, batch)
         residual = data["returns"] - data["value"]
         metrics = {
             "env_steps": env_steps,
@@ -261,20 +258,16 @@ def _functions(config: Config, env):
             "mean_reward": jnp.mean(traj.reward) / config.reward_scale,
         }
         new_runner = RunnerState(
-            params=net_params,
-            opt_state=opt_state,
-            obs_stats=obs_stats,
-            env_state=env_state,
-            obs=obs,
-            episode_stats=episode_stats,
-            last_episode={name: episode[name] for name in runner.last_episode},
-            key=key,
-            env_steps=env_steps,
+            params=net_params, opt_state=opt_state, collector=collector, key=key, env_steps=env_steps
         )
         return new_runner, metrics
 
     def policy_params(runner: RunnerState) -> dict:
-        return {"actor": runner.params["actor"], "log_std": runner.params["log_std"], "obs_stats": runner.obs_stats}
+        return {
+            "actor": runner.params["actor"],
+            "log_std": runner.params["log_std"],
+            "obs_stats": runner.collector.obs_stats,
+        }
 
     def make_policy(policy_params: Mapping):
         """``policy(obs, key=None) -> a`` in [-1, 1]: ``clip(mu)`` without a key, a clipped sample with one."""
@@ -306,6 +299,7 @@ def make_learner(config, env) -> Learner:
         init=init,
         update=update,
         num_iterations=config.num_iterations,
+        steps_per_iteration=config.batch_size,
         policy_params=policy_params,
         make_policy=make_policy,
     )
@@ -316,7 +310,8 @@ def make_train(config, env):
 
     Returns:
         ``train(key, params) -> (runner_state, metrics)``: ``config.num_iterations`` iterations from
-        ``init(key, params)``; ``metrics`` is a dict of (num_iterations,) arrays (see ``update``). Jit it once and
+        ``init(key, params)``; ``metrics`` is a dict of (num_iterations,) arrays (see ``update``; ``env_steps`` is an
+        ``algorithms.rl.counter.Count``, exact past 2^31: ``count_value`` gives the integers). Jit it once and
         ``jax.vmap`` it over keys for several seeds (``params`` unbatched, or batched with ``in_axes`` for
         sweeps).
     """

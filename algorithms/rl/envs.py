@@ -89,17 +89,23 @@ class TrainEnv:
         """N fresh episodes from ``key`` (split N ways). Returns ``(obs (N, obs_size), batched EnvState)``."""
         return jax.vmap(self.env.reset, in_axes=(0, None))(jax.random.split(key, self.num_envs), params)
 
-    def step(self, state, action, params: EnvParams) -> EnvStep:
+    def step(self, state, action, params: EnvParams, adversary=None) -> EnvStep:
         """Step every copy with the normalised action ``action`` (N, action_size), restarting finished episodes.
 
         ``params`` is unbatched (shared by the copies); what differs between copies comes from their reset keys.
+        ``adversary``: None, or (N, dim) inputs in [-1, 1] of the env's adversary channel (``Env.step``'s
+        ``adversary``; the env must be made with one).
         """
 
-        def one(state, a):
+        def one(state, a, adv):
             u = policy_action_to_input(self.env, a, params.physics, self.action_scale)
-            return auto_reset_step(self.env, state, self.env.input_to_action(u, params), params)
+            action = self.env.input_to_action(u, params)
+            if adv is None:
+                return auto_reset_step(self.env, state, action, params)
+            # Needs ``scg_jax.rollout.auto_reset_step`` to forward ``adversary`` to ``Env.step``.
+            return auto_reset_step(self.env, state, action, params, adversary=adv)
 
-        out = jax.vmap(one)(state, action)
+        out = jax.vmap(one)(state, action, adversary)
         info = dict(out.info)
         final_obs = info.pop("final_obs")
         return EnvStep(out.obs, out.state, out.reward, out.cost, out.terminated, out.truncated, final_obs, info)
@@ -188,7 +194,8 @@ def episode_means(finished: FinishedEpisodes, previous: dict) -> dict:
 
     Args:
         finished: ``FinishedEpisodes`` stacked over steps. previous: dict with the ``EPISODE_METRICS`` keys (scalars),
-            the values reported last time; they are repeated where no episode finished, so curves stay NaN-free.
+            the values reported last time; they are repeated where no episode finished (NaN before the first
+            episode has ended: ``initial_episode_means``, so a curve plots nothing there rather than a made-up 0).
 
     Returns:
         ``{"episode_return", "episode_cost", "episode_rmse", "episode_length", "episodes_finished"}`` scalars.
@@ -203,5 +210,5 @@ def episode_means(finished: FinishedEpisodes, previous: dict) -> dict:
 
 
 def initial_episode_means(dtype=jnp.float32) -> dict:
-    """The ``previous`` argument of the first ``episode_means`` call (zeros)."""
-    return {name: jnp.zeros((), dtype) for name in EPISODE_METRICS}
+    """The ``previous`` argument of the first ``episode_means`` call: NaN, "no episode has ended yet"."""
+    return {name: jnp.full((), jnp.nan, dtype) for name in EPISODE_METRICS}

@@ -1,10 +1,16 @@
-"""Small fully connected networks (flax.linen) for the RL learners."""
+"""The RL learners' networks (flax.linen), in one module: PPO, SAC and the safe variants build from these.
+
+- ``MLP``: dense layers with orthogonal initialisation; ``value_network`` (PPO's critic, or a cost critic) is one.
+- ``TanhGaussianActor``: SAC's policy head, ``obs -> (mean, log_std)`` of the pre-squash Gaussian.
+- ``QNetwork`` and ``twin_q``: SAC's soft Q critics, two parameter sets stacked on a leading axis.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
 import flax.linen as nn
+import jax
 import jax.numpy as jnp
 
 ACTIVATIONS: dict[str, Callable] = {
@@ -53,3 +59,46 @@ class MLP(nn.Module):
             if i < last or self.activate_final:
                 x = act(x)
         return x
+
+
+def value_network(hidden: Sequence[int], activation: str = "tanh") -> MLP:
+    """A state-value network ``obs (..., obs_size) -> (..., 1)`` (read ``[..., 0]``): PPO's critic, and the shape of
+    a cost critic ``V_c`` for constrained learners."""
+    return MLP((*hidden, 1), activation, final_scale=1.0)
+
+
+class TanhGaussianActor(nn.Module):
+    """Tanh-squashed Gaussian policy head: ``obs (..., obs_size) -> (mean, log_std)``, each (..., action_size).
+
+    ``log_std`` depends on the observation and is clipped to ``[log_std_min, log_std_max]``; the action is
+    ``tanh(mean + exp(log_std) eps)`` (deterministic: ``tanh(mean)``).
+    """
+
+    hidden: tuple[int, ...]
+    action_size: int
+    activation: str = "relu"
+    log_std_min: float = -5.0
+    log_std_max: float = 2.0
+
+    @nn.compact
+    def __call__(self, obs):
+        # A small final layer starts every copy near mean 0, std 1: broad exploration and no saturated tanh.
+        out = MLP((*self.hidden, 2 * self.action_size), self.activation, final_scale=0.01)(obs)
+        mean, log_std = jnp.split(out, 2, axis=-1)
+        return mean, jnp.clip(log_std, self.log_std_min, self.log_std_max)
+
+
+class QNetwork(nn.Module):
+    """One Q network: ``(obs (..., obs_size), action (..., action_size)) -> Q (...)``."""
+
+    hidden: tuple[int, ...]
+    activation: str = "relu"
+
+    @nn.compact
+    def __call__(self, obs, action):
+        return MLP((*self.hidden, 1), self.activation)(jnp.concatenate([obs, action], axis=-1))[..., 0]
+
+
+def twin_q(critic: QNetwork, critic_params, obs, action):
+    """Both critics: ``critic_params`` holds two parameter sets stacked on a leading axis. Returns (2, ...)."""
+    return jax.vmap(critic.apply, in_axes=(0, None, None))(critic_params, obs, action)

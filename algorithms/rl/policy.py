@@ -7,6 +7,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import yaml
 
 from algorithms.base import JaxController, parse_options
 from algorithms.rl.checkpoint import load_checkpoint, load_metadata
@@ -23,12 +24,39 @@ def algorithm_module(algo: str, part: str):
     return getattr(importlib.import_module(f"algorithms.{algo}.{submodule}"), part)
 
 
+def trained_system(meta: dict) -> str | None:
+    """The system a policy was trained on: ``policy.json``'s ``system`` (recorded since it exists), else the
+    ``env.system`` of its stored env config; None if neither says."""
+    if isinstance(meta.get("system"), str):
+        return meta["system"]
+    text = meta.get("env_config")
+    if not isinstance(text, str):
+        return None
+    try:
+        env_section = (yaml.safe_load(text) or {}).get("env") or {}
+    except (yaml.YAMLError, AttributeError):
+        return None
+    system = env_section.get("system") if isinstance(env_section, dict) else None
+    return system if isinstance(system, str) else None
+
+
 def load_learner(directory, env):
-    """The ``Learner`` whose policy was saved in ``directory`` (rebuilt from ``policy.json``), and the metadata."""
+    """The ``Learner`` whose policy was saved in ``directory`` (rebuilt from ``policy.json``), and the metadata.
+
+    Raises:
+        ValueError: the policy was trained on another system than ``env``'s (even with the same observation
+            size, its inputs would mean something else), or observes another number of values.
+    """
     meta = load_metadata(directory, POLICY_NAME)
     algo = meta.get("algo")
     if not isinstance(algo, str) or not algo.isidentifier():
         raise ValueError(f"{Path(directory) / POLICY_NAME}.json: algo must name a learner package, got {algo!r}")
+    system = trained_system(meta)
+    if system is not None and system != env.system.name:
+        raise ValueError(
+            f"{Path(directory) / POLICY_NAME}.json: the policy was trained on the {system} and cannot control the "
+            f"{env.system.name}; evaluate it on the {system} (its config: env.system: {system})"
+        )
     if meta.get("obs_size") is not None and meta["obs_size"] != env.observation_size:
         raise ValueError(
             f"{Path(directory) / POLICY_NAME}.json: the policy observes {meta['obs_size']} values but the env gives "

@@ -10,7 +10,8 @@ on the chunking: a run resumed from a checkpoint is bit-identical to an uninterr
 
 Files written in ``out_dir``:
 
-- ``progress.csv``: one row per iteration: ``iteration``, ``env_steps``, ``wall_time_s`` then the learner's metrics.
+- ``progress.csv``: one row per iteration: ``iteration``, ``env_steps``, ``wall_time_s`` then the learner's metrics
+  (``episode_*`` are ``nan`` until the first episode has ended: there is nothing to average yet).
 - ``checkpoint.msgpack`` / ``checkpoint.json``: the runner state and where it stands (``resume=True`` reads them).
 - ``policy.msgpack`` / ``policy.json``: what ``algorithms.rl.policy.load_policy`` needs (algo, config, env config
   text, observation normaliser).
@@ -23,6 +24,7 @@ import csv as csv_lib
 import dataclasses
 import io
 import math
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -32,7 +34,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from algorithms.rl.checkpoint import load_checkpoint, save_checkpoint
+from algorithms.rl.checkpoint import load_checkpoint, load_metadata, save_checkpoint
+from algorithms.rl.counter import Count, count_value
 from algorithms.rl.normalization import RunningStats
 from scg_jax.files import write_atomic
 
@@ -40,6 +43,16 @@ CSV_NAME = "progress.csv"
 CHECKPOINT_NAME = "checkpoint"
 POLICY_NAME = "policy"
 CURVE_NAME = "learning_curve.png"
+RUN_FILES = (
+    f"{CHECKPOINT_NAME}.json",
+    f"{CHECKPOINT_NAME}.msgpack",
+    f"{POLICY_NAME}.json",
+    f"{POLICY_NAME}.msgpack",
+    CSV_NAME,
+    CURVE_NAME,
+    "metrics.json",
+)
+"""The files of a training run in its folder (``metrics.json`` is the CLI's); ``overwrite=True`` removes these."""
 
 
 class Learner(NamedTuple):
@@ -50,10 +63,11 @@ class Learner(NamedTuple):
         config: the frozen hyperparameter dataclass (``algorithms.<name>.Config``).
         init: ``init(key, params) -> runner_state``; ``params`` unbatched ``EnvParams``.
         update: ``update(runner_state, params) -> (runner_state, metrics)``, one iteration; ``metrics`` a dict of
-            scalars with at least ``env_steps`` (total so far), ``episode_return``, ``episode_cost``,
-            ``episode_rmse`` (means over the episodes finished in the iteration, the previous value when none did)
-            and the losses.
+            scalars (or ``algorithms.rl.counter.Count``s, exact integers) with at least ``env_steps`` (total so far,
+            a ``Count``), ``episode_return``, ``episode_cost``, ``episode_rmse`` (means over the episodes finished
+            in the iteration, the previous value when none did, NaN before the first) and the losses.
         num_iterations: iterations in the budget (``total_env_steps`` over the env steps per iteration).
+        steps_per_iteration: env steps per iteration (all copies together).
         policy_params: ``policy_params(runner_state) -> pytree``: network parameters and observation statistics.
         make_policy: ``make_policy(policy_params) -> policy(obs, key)``: the action in [-1, 1] for ``obs``
             (obs_size,) or (B, obs_size); deterministic (the mean) when ``key`` is None, sampled otherwise.
@@ -64,6 +78,7 @@ class Learner(NamedTuple):
     init: Callable
     update: Callable
     num_iterations: int
+    steps_per_iteration: int
     policy_params: Callable
     make_policy: Callable
 
@@ -80,7 +95,9 @@ def json_ready(value):
     if isinstance(value, list | tuple):
         return [json_ready(v) for v in value]
     if isinstance(value, np.ndarray | jax.Array | np.generic):
-        return np.asarray(value).tolist()
+        return json_ready(np.asarray(value).tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None  # NaN (no episode finished yet) is not JSON: null
     return value
 
 
@@ -95,22 +112,38 @@ def find_obs_stats(policy_params) -> RunningStats | None:
 
 
 def _make_chunk_runner(learner: Learner, max_chunk: int):
-    """``run(runner_state, params, n) -> (runner_state, metrics (max_chunk,) per key)``: n iterations, n traced."""
+    """``run(runner_state, params, n) -> (runner_state, metrics (max_chunk, ...) per key)``: n iterations, n traced."""
 
     def run(runner_state, params, n):
         metric_shapes = jax.eval_shape(lambda s: learner.update(s, params)[1], runner_state)
-        # Each metric keeps its dtype (an int32 step counter stays exact beyond float32's 2^24).
-        buffer = {name: jnp.zeros((max_chunk,), shape.dtype) for name, shape in metric_shapes.items()}
+        # Each metric keeps its dtype and structure (a Count stays two exact uint32 words).
+        buffer = jax.tree.map(lambda shape: jnp.zeros((max_chunk, *shape.shape), shape.dtype), metric_shapes)
 
         def body(i, carry):
             state, buffer = carry
             state, metrics = learner.update(state, params)
-            buffer = {name: buffer[name].at[i].set(metrics[name]) for name in buffer}
+            buffer = jax.tree.map(lambda stored, value: stored.at[i].set(value), buffer, metrics)
             return state, buffer
 
         return jax.lax.fori_loop(0, n, body, (runner_state, buffer))
 
     return jax.jit(run)
+
+
+def _host_metrics(metrics: dict, n: int) -> dict[str, np.ndarray]:
+    """The first ``n`` entries of each metric as numpy arrays; ``Count``s as exact ``uint64``."""
+    out = {}
+    for name, value in metrics.items():
+        if isinstance(value, Count):
+            out[name] = np.asarray(count_value(Count(np.asarray(value.hi)[:n], np.asarray(value.lo)[:n])))
+        else:
+            out[name] = np.asarray(value)[:n]
+    return out
+
+
+def _scalar(value):
+    """A metric entry as a Python int (integer dtypes: exact) or float."""
+    return int(value) if np.issubdtype(np.asarray(value).dtype, np.integer) else float(value)
 
 
 def raw_key(key):
@@ -140,17 +173,31 @@ def _write_csv(path: Path, header: list[str], rows: list[list]) -> None:
 
 
 def _format_row(iteration: int, elapsed: float, names: list[str], metrics: dict, index: int) -> list:
-    row = [iteration, int(round(float(metrics["env_steps"][index]))), f"{elapsed:.3f}"]
-    row += [f"{float(metrics[name][index]):.7g}" for name in names]
+    row = [iteration, int(metrics["env_steps"][index]), f"{elapsed:.3f}"]
+    for name in names:
+        value = _scalar(metrics[name][index])
+        row.append(str(value) if isinstance(value, int) else f"{value:.7g}")  # NaN is written "nan"
     return row
 
 
-class _Progress:
-    """A rich progress bar with env steps/s and the latest return; a no-op when disabled."""
+def _format_seconds(seconds: float) -> str:
+    seconds = int(round(seconds))
+    hours, rest = divmod(seconds, 3600)
+    return f"{hours}:{rest // 60:02d}:{rest % 60:02d}" if hours else f"{rest // 60}:{rest % 60:02d}"
 
-    def __init__(self, enabled: bool, total: int, completed: int, name: str):
-        self.bar = None
+
+class _Progress:
+    """Progress of a run: a rich bar on a terminal, a plain line every ``seconds`` otherwise (a log file or a pipe
+    sees output while the run goes, not only at its end), nothing when disabled."""
+
+    def __init__(self, enabled: bool, total: int, completed: int, name: str, seconds: float, stream=None):
+        self.bar, self.plain, self.total, self.name, self.seconds = None, False, total, name, seconds
+        self.stream = sys.stdout if stream is None else stream
+        self.last_print = -math.inf
         if not enabled:
+            return
+        if not self.stream.isatty():
+            self.plain = True
             return
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
@@ -165,13 +212,101 @@ class _Progress:
         self.task = self.bar.add_task(name, total=total, completed=completed, status="compiling...")
         self.bar.start()
 
-    def update(self, completed: int, status: str) -> None:
+    def update(self, completed: int, status: str, elapsed: float, remaining: float) -> None:
         if self.bar is not None:
             self.bar.update(self.task, completed=completed, status=status)
+        elif self.plain:
+            now = time.perf_counter()
+            if now - self.last_print >= self.seconds or completed >= self.total:
+                self.last_print = now
+                line = (
+                    f"{self.name}: iteration {completed}/{self.total} ({100.0 * completed / self.total:.1f}%), "
+                    f"{status}, elapsed {_format_seconds(elapsed)}, remaining {_format_seconds(remaining)}"
+                )
+                print(line, file=self.stream, flush=True)
 
     def stop(self) -> None:
         if self.bar is not None:
             self.bar.stop()
+            self.bar = None
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """``run_training`` was interrupted (Ctrl-C) and saved what it had.
+
+    Attributes:
+        out_dir: the run's folder. iteration: the last completed iteration, saved in ``checkpoint.*`` (resumable
+            with ``resume=True``). num_iterations: the budget. checkpoint: path of ``checkpoint.msgpack``, or None
+            when no iteration had completed (nothing to save).
+    """
+
+    def __init__(self, out_dir: Path, iteration: int, num_iterations: int, checkpoint: Path | None):
+        super().__init__(f"training interrupted at iteration {iteration}/{num_iterations}")
+        self.out_dir, self.iteration, self.num_iterations = out_dir, iteration, num_iterations
+        self.checkpoint = checkpoint
+
+
+def existing_run_files(out_dir) -> list[str]:
+    """The ``RUN_FILES`` present in ``out_dir`` (empty when it holds no run or does not exist)."""
+    out_dir = Path(out_dir)
+    return [name for name in RUN_FILES if (out_dir / name).exists()]
+
+
+_MISSING = object()
+
+
+def config_differences(saved: dict, current: dict, ignore: tuple[str, ...] = ()) -> list[str]:
+    """``"key: <saved> in the checkpoint, <current> now"`` for each top-level key whose value differs."""
+    differences = []
+    for name in sorted(saved.keys() | current.keys()):
+        if name in ignore:
+            continue
+        old, new = saved.get(name, _MISSING), current.get(name, _MISSING)
+        if old != new:
+            show = lambda v: "(absent)" if v is _MISSING else repr(v)  # noqa: E731
+            differences.append(f"{name}: {show(old)} in the checkpoint, {show(new)} now")
+    return differences
+
+
+def _env_section(config_text: str) -> dict:
+    """The ``env`` mapping of a stored config text (the whole text under ``"(text)"`` if it is not such YAML)."""
+    import yaml
+
+    try:
+        section = (yaml.safe_load(config_text) or {}).get("env")
+    except (yaml.YAMLError, AttributeError):
+        section = None
+    return section if isinstance(section, dict) else {"(text)": config_text}
+
+
+def _check_resumable(meta: dict, checkpoint_file: Path, learner: Learner, config: dict, env_config) -> None:
+    """ValueError naming what keeps the checkpoint ``meta`` from being continued by ``learner`` with ``config``."""
+    saved_algo = meta.get("algo")
+    if saved_algo != learner.name:
+        raise ValueError(
+            f"resume: {checkpoint_file} is a {saved_algo!r} run, not {learner.name!r}; resume it with algo "
+            f"{saved_algo!r}, or train {learner.name!r} into another folder"
+        )
+    differences = config_differences(meta.get("config") or {}, config, ignore=("total_env_steps",))
+    if differences:
+        raise ValueError(
+            f"resume: {checkpoint_file} was written by {saved_algo!r} with another config: {'; '.join(differences)}. "
+            f"Use the same training.{learner.name} settings (only total_env_steps may be raised) or another folder"
+        )
+    saved_env, iteration = meta.get("env_config"), int(meta.get("iteration", 0))
+    if saved_env is not None and env_config is not None:
+        env_differences = config_differences(_env_section(saved_env), _env_section(env_config))
+        if env_differences:
+            raise ValueError(
+                f"resume: {checkpoint_file} was trained on another env: "
+                f"{'; '.join('env.' + line for line in env_differences)}. Use the same env settings or another folder"
+            )
+    if iteration > learner.num_iterations:
+        raise ValueError(
+            f"resume: {checkpoint_file} is at iteration {iteration} ({meta.get('env_steps')} env steps), beyond "
+            f"this budget of {learner.num_iterations} iterations (training.{learner.name}.total_env_steps = "
+            f"{config.get('total_env_steps')}); a resumed run's budget may be raised, not set below where it stands"
+        )
 
 
 def run_training(
@@ -183,11 +318,15 @@ def run_training(
     *,
     chunk: int | None = None,
     checkpoint_every: int | None = None,
+    checkpoint_seconds: float = 60.0,
     resume: bool = False,
+    overwrite: bool = False,
     progress: bool = True,
+    progress_seconds: float = 10.0,
     csv: bool = True,
     env_config: str | None = None,
     target_seconds_per_chunk: float = 1.0,
+    on_chunk: Callable[[int], None] | None = None,
 ) -> dict:
     """Train ``learner`` for its ``num_iterations`` on ``env`` with ``params``, writing results to ``out_dir``.
 
@@ -195,24 +334,37 @@ def run_training(
         learner: a ``Learner``. env: the ``scg_jax.Env`` it was made for. params: unbatched ``EnvParams`` of the
             training plant (randomisation and disturbances as configured in ``env``/``params``).
         key: PRNG key (raw or typed); the whole run is determined by it.
-        out_dir: output folder (created). chunk: iterations per compiled call; ``None`` adapts it so that a call
-            takes about ``target_seconds_per_chunk`` (results do not depend on it).
-        checkpoint_every: save ``checkpoint.msgpack/json`` every that many iterations (and always at the end);
-            ``None``: about every 60 s of wall time.
-        resume: continue from ``out_dir/checkpoint.*`` when present (otherwise start afresh); the result is
-            bit-identical to an uninterrupted run with the same key. Raises ValueError if the checkpoint was written
-            with another algorithm or config.
-        progress: show a rich progress bar. csv: write ``progress.csv`` and ``learning_curve.png``.
+        out_dir: output folder (created). A folder that already holds a run (any of ``RUN_FILES``) is refused
+            unless ``resume`` or ``overwrite`` is given.
+        chunk: iterations per compiled call; ``None`` adapts it so that a call takes about
+            ``target_seconds_per_chunk`` (results do not depend on it).
+        checkpoint_every: save ``checkpoint.msgpack/json`` every that many iterations; ``None``: every
+            ``checkpoint_seconds`` of wall time (the first one after that long too). Always at the end, and on
+            Ctrl-C.
+        resume: continue from ``out_dir/checkpoint.*`` (start afresh in an empty folder); the result is
+            bit-identical to an uninterrupted run with the same key. The algorithm, its config and the env config
+            must be the checkpoint's, except ``total_env_steps``, which may be raised to extend a run (PPO's
+            decaying step size then follows the new budget's schedule from where the run stands). Raises
+            ValueError naming the settings that differ.
+        overwrite: remove a previous run's files from ``out_dir`` and start afresh (excludes ``resume``).
+        progress: show progress: a rich bar on a terminal, else a plain line every ``progress_seconds``.
+        csv: write ``progress.csv`` and ``learning_curve.png``.
         env_config: the env configuration text (YAML) to store with the policy, so it can be rebuilt.
+        on_chunk: called with the iteration count after each compiled call has been recorded (CSV rows written);
+            an exception it raises stops the run (KeyboardInterrupt: as Ctrl-C).
 
     Returns:
         ``{"algo", "iterations", "env_steps", "total_time_s", "compile_time_s", "train_time_s",
         "env_steps_per_s" (steps of this session over its run time, compile excluded), "resumed_from_iteration",
         "final_metrics" (the last iteration's metrics), "out_dir"}``; JSON-ready.
+
+    Raises:
+        ValueError: bad arguments, a folder holding a run without ``resume``/``overwrite``, a checkpoint that
+            cannot be continued. TrainingInterrupted (a KeyboardInterrupt): Ctrl-C, after saving a checkpoint of
+            the last completed iteration.
     """
     start = time.perf_counter()
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     total = int(learner.num_iterations)
     if total < 1:
         raise ValueError(f"learner.num_iterations: must be at least 1, got {total}")
@@ -220,33 +372,62 @@ def run_training(
         raise ValueError(f"chunk: must be a positive integer or None, got {chunk!r}")
     if checkpoint_every is not None and (int(checkpoint_every) != checkpoint_every or checkpoint_every < 1):
         raise ValueError(f"checkpoint_every: must be a positive integer or None, got {checkpoint_every!r}")
+    if not checkpoint_seconds > 0:
+        raise ValueError(f"checkpoint_seconds: must be positive, got {checkpoint_seconds!r}")
+    if not progress_seconds >= 0:
+        raise ValueError(f"progress_seconds: must be >= 0, got {progress_seconds!r}")
+    if resume and overwrite:
+        raise ValueError("resume, overwrite: give one of them (continue the run in out_dir, or replace it)")
     config = config_dict(learner.config)
     key = raw_key(jnp.asarray(key))
 
-    init = jax.jit(learner.init)
-    iteration, elapsed_before, resumed_from, steps_at_start = 0, 0.0, None, 0.0
-    resumed_metrics: dict = {}
     checkpoint_file = out_dir / f"{CHECKPOINT_NAME}.json"
+    existing = existing_run_files(out_dir)
+    if existing and overwrite:
+        for name in existing:
+            (out_dir / name).unlink(missing_ok=True)
+    elif existing and not (resume and checkpoint_file.exists()):
+        action = "has no checkpoint to resume" if resume else "already holds a training run"
+        raise ValueError(
+            f"out_dir: {out_dir} {action} ({', '.join(existing)}); "
+            + ("use overwrite to replace it" if resume else "use resume to continue it or overwrite to replace it")
+        )
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    init = jax.jit(learner.init)
+    iteration, elapsed_before, resumed_from, steps_at_start = 0, 0.0, None, 0
+    resumed_metrics: dict = {}
     if resume and checkpoint_file.exists():
+        meta = load_metadata(out_dir, CHECKPOINT_NAME)
+        _check_resumable(meta, checkpoint_file, learner, config, env_config)
         target = jax.eval_shape(learner.init, key, params)
-        runner_state, meta = load_checkpoint(out_dir, CHECKPOINT_NAME, target)
-        if meta.get("algo") != learner.name or meta.get("config") != config:
-            raise ValueError(
-                f"resume: {checkpoint_file} was written by {meta.get('algo')!r} with another config; use a new "
-                "out_dir or the same settings"
+        try:
+            runner_state, meta = load_checkpoint(out_dir, CHECKPOINT_NAME, target)
+        except ValueError as error:
+            budget_changed = (meta.get("config") or {}).get("total_env_steps") != config.get("total_env_steps")
+            hint = (
+                " (the new total_env_steps changes the size of the state, e.g. a replay buffer clipped to the "
+                "budget: keep buffer_size at most the old budget)"
+                if budget_changed
+                else ""
             )
+            raise ValueError(f"resume: {error}{hint}") from None
         runner_state = jax.tree.map(jnp.asarray, runner_state)
         iteration, elapsed_before = int(meta["iteration"]), float(meta.get("wall_time_s", 0.0))
-        resumed_from, steps_at_start = iteration, float(meta.get("env_steps", 0))
+        resumed_from, steps_at_start = iteration, int(meta.get("env_steps", 0))
         resumed_metrics = dict(meta.get("metrics") or {})
     else:
         runner_state = init(key, params)
 
     max_chunk = min(total, int(chunk) if chunk is not None else 1000)
     compile_start = time.perf_counter()
-    if iteration < total:  # a finished run resumed has nothing to compile
-        runner = _make_chunk_runner(learner, max_chunk)
-        compiled = runner.lower(runner_state, params, jnp.int32(1)).compile()
+    try:
+        if iteration < total:  # a finished run resumed has nothing to compile
+            runner = _make_chunk_runner(learner, max_chunk)
+            compiled = runner.lower(runner_state, params, jnp.int32(1)).compile()
+    except KeyboardInterrupt:  # Ctrl-C while compiling: nothing new to save
+        saved = out_dir / f"{CHECKPOINT_NAME}.msgpack"
+        raise TrainingInterrupted(out_dir, iteration, total, saved if saved.exists() else None) from None
     compile_s = time.perf_counter() - compile_start
 
     csv_path = out_dir / CSV_NAME
@@ -262,11 +443,12 @@ def run_training(
             rows = []
         _write_csv(csv_path, header, rows)
 
-    bar = _Progress(progress, total, iteration, learner.name)
+    bar = _Progress(progress, total, iteration, learner.name, progress_seconds)
     run_start = time.perf_counter()
     # A resumed run that is already complete runs no iteration: it reports the checkpoint's last metrics.
     last_metrics: dict = resumed_metrics
     last_checkpoint_time = time.perf_counter()
+    saved_iteration = iteration  # the iteration the checkpoint on disk holds (when resumed) or will hold
     seconds_per_iteration = None
     try:
         while iteration < total:
@@ -281,8 +463,8 @@ def run_training(
                 next_checkpoint = (iteration // checkpoint_every + 1) * checkpoint_every
                 n = min(n, next_checkpoint - iteration)
             t0 = time.perf_counter()
-            runner_state, metrics = compiled(runner_state, params, jnp.int32(n))
-            metrics = {name: np.asarray(values[:n]) for name, values in metrics.items()}
+            new_state, metrics = compiled(runner_state, params, jnp.int32(n))
+            metrics = _host_metrics(metrics, n)  # waits for the chunk
             dt = time.perf_counter() - t0
             per_iteration = dt / n
             seconds_per_iteration = (
@@ -294,28 +476,46 @@ def run_training(
                 rows = [_format_row(iteration + i + 1, elapsed, names, metrics, i) for i in range(n)]
                 with csv_path.open("a", newline="") as file:
                     csv_lib.writer(file, lineterminator="\n").writerows(rows)
-            iteration += n
-            last_metrics = {name: float(values[-1]) for name, values in metrics.items()}
+            # Only now does the state count as done: an interrupt before this line saves the previous chunk's.
+            runner_state, iteration = new_state, iteration + n
+            last_metrics = {name: _scalar(values[-1]) for name, values in metrics.items()}
             rate = (last_metrics["env_steps"] - steps_at_start) / max(now - run_start, 1e-9)
+            remaining = (total - iteration) * learner.steps_per_iteration / max(rate, 1e-9)
             bar.update(
                 iteration,
-                f"{last_metrics['env_steps']:.3g} steps, {rate:,.0f} steps/s, return "
+                f"{last_metrics['env_steps']:,} env steps, {rate:,.0f} steps/s, return "
                 f"{last_metrics.get('episode_return', math.nan):.4g}",
+                elapsed,
+                remaining,
             )
             due = (
                 iteration % checkpoint_every == 0
                 if checkpoint_every is not None
-                else now - last_checkpoint_time >= 60.0
+                else now - last_checkpoint_time >= checkpoint_seconds
             )
             if due or iteration >= total:
-                _save_runner(out_dir, learner, config, runner_state, iteration, last_metrics, elapsed)
-                last_checkpoint_time = time.perf_counter()
+                _save_runner(out_dir, learner, config, env_config, runner_state, iteration, last_metrics, elapsed)
+                saved_iteration, last_checkpoint_time = iteration, time.perf_counter()
+            if on_chunk is not None:
+                on_chunk(iteration)
+    except KeyboardInterrupt:
+        bar.stop()
+        if iteration > saved_iteration:
+            elapsed = elapsed_before + time.perf_counter() - start
+            _save_runner(out_dir, learner, config, env_config, runner_state, iteration, last_metrics, elapsed)
+            saved_iteration = iteration
+        if csv and csv_path.exists():  # rows of a chunk that did not complete are dropped on resume anyway
+            header, rows = _read_csv_rows(csv_path, saved_iteration)
+            if header is not None:
+                _write_csv(csv_path, header, rows)
+        saved = out_dir / f"{CHECKPOINT_NAME}.msgpack"
+        raise TrainingInterrupted(out_dir, saved_iteration, total, saved if saved.exists() else None) from None
     finally:
         bar.stop()
 
     policy_params = learner.policy_params(runner_state)
     stats = find_obs_stats(policy_params)
-    env_steps = int(round(last_metrics.get("env_steps", steps_at_start)))
+    env_steps = int(last_metrics.get("env_steps", steps_at_start))
     save_checkpoint(
         out_dir,
         POLICY_NAME,
@@ -324,6 +524,8 @@ def run_training(
             "algo": learner.name,
             "config": config,
             "env_config": env_config,
+            "system": env.system.name,
+            "task": env.task,
             "obs_size": int(env.observation_size),
             "action_size": int(env.action_size),
             "obs_normalizer": None if stats is None else json_ready(stats._asdict()),
@@ -332,25 +534,27 @@ def run_training(
         },
     )
     if csv:
-        plot_learning_curve(csv_path, out_dir / CURVE_NAME)
+        plot_learning_curve(csv_path, out_dir / CURVE_NAME, rmse_label=rmse_label(env, params))
     total_s = time.perf_counter() - start
     run_s = time.perf_counter() - run_start
-    session_steps = last_metrics.get("env_steps", steps_at_start) - steps_at_start
-    return {
-        "algo": learner.name,
-        "iterations": iteration,
-        "env_steps": env_steps,
-        "total_time_s": total_s,
-        "compile_time_s": compile_s,
-        "train_time_s": run_s,
-        "env_steps_per_s": session_steps / max(run_s, 1e-9),
-        "resumed_from_iteration": resumed_from,
-        "final_metrics": last_metrics,
-        "out_dir": str(out_dir),
-    }
+    session_steps = env_steps - steps_at_start
+    return json_ready(
+        {
+            "algo": learner.name,
+            "iterations": iteration,
+            "env_steps": env_steps,
+            "total_time_s": total_s,
+            "compile_time_s": compile_s,
+            "train_time_s": run_s,
+            "env_steps_per_s": session_steps / max(run_s, 1e-9),
+            "resumed_from_iteration": resumed_from,
+            "final_metrics": last_metrics,
+            "out_dir": str(out_dir),
+        }
+    )
 
 
-def _save_runner(out_dir, learner, config, runner_state, iteration, metrics, elapsed) -> None:
+def _save_runner(out_dir, learner, config, env_config, runner_state, iteration, metrics, elapsed) -> None:
     save_checkpoint(
         out_dir,
         CHECKPOINT_NAME,
@@ -358,26 +562,45 @@ def _save_runner(out_dir, learner, config, runner_state, iteration, metrics, ela
         {
             "algo": learner.name,
             "config": config,
+            "env_config": env_config,
             "iteration": iteration,
             "num_iterations": int(learner.num_iterations),
-            "env_steps": int(round(metrics.get("env_steps", 0.0))),
+            "env_steps": int(metrics.get("env_steps", 0)),
             "wall_time_s": elapsed,
-            "metrics": metrics,
+            "metrics": json_ready(metrics),
         },
     )
 
 
+# Position entries of each system's state (m): a RMSE weighted only on these is a distance.
+_POSITION_INDICES = {"cartpole": (0,), "quadrotor_1d": (0,), "quadrotor_2d": (0, 2), "quadrotor_3d": (0, 2, 4)}
+
+
+def rmse_label(env, params) -> str:
+    """Axis label of the episode RMSE: ``"RMSE (m)"`` when ``params.mse_weight`` weighs only positions with 1
+    (the quadrotors' default), otherwise a weighted full-state error of mixed units (the cart-pole's default)."""
+    weights = np.asarray(params.mse_weight)
+    weighted = set(np.flatnonzero(weights).tolist())
+    positions = set(_POSITION_INDICES.get(env.system.name, ()))
+    if weighted and weighted <= positions and np.all(weights[list(weighted)] == 1.0):
+        return "RMSE (m)"
+    return "RMSE (weighted state error, mixed units)"
+
+
 CURVE_PANELS = (
-    ("episode_return", "return"),
-    ("episode_rmse", "RMSE"),
+    ("episode_return", "return (sum of rewards)"),
+    ("episode_rmse", None),  # the label comes from rmse_label
     ("episode_cost", "cost (steps in violation)"),
-    ("episode_length", "length (steps)"),
+    ("episode_length", "length (control steps)"),
 )
 
 
-def plot_learning_curve(csv_path, png_path) -> None:
+def plot_learning_curve(csv_path, png_path, rmse_label: str = "RMSE (weighted state error)") -> None:
     """Plot ``progress.csv`` against env steps: return, RMSE, cost and length per episode, plus every ``*loss*``
-    column, one panel each (the panels whose column is missing are left out); written atomically as a PNG."""
+    column, one panel each (the panels whose column is missing are left out); written atomically as a PNG.
+
+    ``nan`` entries (no episode had ended yet) are left out of the lines rather than drawn as 0.
+    """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -386,7 +609,7 @@ def plot_learning_curve(csv_path, png_path) -> None:
     if not rows:
         return
     columns = rows[0].keys()
-    panels = [(name, label) for name, label in CURVE_PANELS if name in columns]
+    panels = [(name, label or rmse_label) for name, label in CURVE_PANELS if name in columns]
     panels += [(name, name) for name in columns if "loss" in name]
     steps = np.array([float(row["env_steps"]) for row in rows])
     ncols = min(3, max(len(panels), 1))
@@ -395,8 +618,10 @@ def plot_learning_curve(csv_path, png_path) -> None:
     FigureCanvasAgg(fig)
     for i, (name, label) in enumerate(panels):
         ax = fig.add_subplot(nrows, ncols, i + 1)
-        ax.plot(steps, [float(row[name]) for row in rows], lw=1.2)
+        values = np.array([float(row[name]) if row[name] != "" else math.nan for row in rows])
+        ax.plot(steps, values, lw=1.2)
         ax.set_xlabel("env steps")
+        ax.set_ylabel(label, fontsize=9)
         ax.set_title(label, fontsize=10)
         ax.grid(alpha=0.3)
     write_atomic(png_path, lambda file: fig.savefig(file, format="png", dpi=100))

@@ -17,9 +17,12 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from algorithms.base import option, parse_options, positive
+from algorithms.base import option
+from algorithms.rl.config import check_budget, check_fields, layer_sizes, parse_learner_config
+from algorithms.rl.networks import ACTIVATIONS as _NETWORK_ACTIVATIONS
 
-ACTIVATIONS = ("relu", "tanh", "elu", "gelu", "swish")
+# The shared networks' activations, SAC's default first.
+ACTIVATIONS = ("relu", *(name for name in _NETWORK_ACTIVATIONS if name != "relu"))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,12 +58,25 @@ class Config:
     )
 
     def _check(self, path: str) -> None:
-        for name in ("total_env_steps", "num_envs", "rollout_steps", "buffer_size", "batch_size"):
-            positive(f"{path}.{name}", getattr(self, name))
-        for name in ("utd", "actor_lr", "critic_lr", "alpha_lr", "init_alpha", "reward_scale", "action_scale"):
-            positive(f"{path}.{name}", getattr(self, name))
-        if self.warmup_steps < 0:
-            raise ValueError(f"{path}.warmup_steps: must be >= 0, got {self.warmup_steps}")
+        check_fields(
+            self,
+            path,
+            positive_fields=(
+                "total_env_steps",
+                "num_envs",
+                "rollout_steps",
+                "buffer_size",
+                "batch_size",
+                "utd",
+                "actor_lr",
+                "critic_lr",
+                "alpha_lr",
+                "init_alpha",
+                "reward_scale",
+                "action_scale",
+            ),
+            nonnegative=("warmup_steps",),
+        )
         if not 0.0 < self.gamma < 1.0:
             raise ValueError(f"{path}.gamma: must be in (0, 1), got {self.gamma}")
         if not 0.0 < self.tau <= 1.0:
@@ -71,19 +87,14 @@ class Config:
             )
         if self.max_grad_norm < 0:
             raise ValueError(f"{path}.max_grad_norm: must be >= 0 (0 turns clipping off), got {self.max_grad_norm}")
-        if not self.hidden_sizes or any(h < 1 or not float(h).is_integer() for h in self.hidden_sizes):
-            raise ValueError(f"{path}.hidden_sizes: expected a list of positive integers, got {self.hidden_sizes}")
+        layer_sizes(f"{path}.hidden_sizes", self.hidden_sizes)
         per_iteration = self.utd * self.transitions_per_iteration
         if not math.isclose(per_iteration, round(per_iteration)) or round(per_iteration) < 1:
             raise ValueError(
                 f"{path}.utd: utd * num_envs * rollout_steps must be a positive integer (gradient steps per "
                 f"iteration), got {self.utd} * {self.num_envs} * {self.rollout_steps} = {per_iteration:g}"
             )
-        if self.total_env_steps < self.transitions_per_iteration:
-            raise ValueError(
-                f"{path}.total_env_steps: must allow one iteration of num_envs * rollout_steps = "
-                f"{self.transitions_per_iteration} transitions, got {self.total_env_steps}"
-            )
+        check_budget(path, self.total_env_steps, self.transitions_per_iteration, "num_envs * rollout_steps")
         if self.transitions_per_iteration > self.capacity:
             raise ValueError(
                 f"{path}.buffer_size: must hold one iteration's {self.transitions_per_iteration} transitions, "
@@ -118,7 +129,7 @@ class Config:
 
     @property
     def hidden(self) -> tuple[int, ...]:
-        return tuple(int(h) for h in self.hidden_sizes)
+        return layer_sizes("hidden_sizes", self.hidden_sizes)
 
     def to_dict(self) -> dict:
         """Plain JSON-able mapping that ``parse_config`` turns back into an equal ``Config``."""
@@ -128,4 +139,4 @@ class Config:
 
 def parse_config(options=None, path: str = "training.sac") -> Config:
     """``Config`` from a mapping (``None``: the defaults); ValueError naming ``<path>.<key>`` on bad input."""
-    return parse_options(Config, options, path)
+    return parse_learner_config(Config, options, path)

@@ -3,52 +3,31 @@
 Conventions: a batch has B transitions; actions live in [-1, 1]^nu as ``a = tanh(u)`` with
 ``u ~ N(mean, exp(log_std)^2)`` (the pre-squash sample ``u``); ``alpha`` is the entropy temperature; log-probs are
 of the squashed action ``a`` (nats). Every function is differentiable with ``jax.grad`` and has worked-number tests
-in ``tests/test_sac.py``.
+in ``tests/test_sac.py``. The tanh-Gaussian density and sampler are the learners' shared ones
+(``algorithms.rl.distributions``), re-exported here.
 """
 
 from __future__ import annotations
 
-import math
-
 import jax
 import jax.numpy as jnp
 
-_LOG_2PI = math.log(2.0 * math.pi)
+from algorithms.rl.distributions import (
+    log1m_tanh_sq,
+    sample_tanh_gaussian,
+    tanh_gaussian_log_prob,
+)
 
-
-def gaussian_log_prob(u, mean, log_std):
-    """Log density of a diagonal Gaussian, summed over the last axis: ``(..., nu) -> (...)``."""
-    z = (u - mean) * jnp.exp(-log_std)
-    return jnp.sum(-0.5 * z**2 - log_std - 0.5 * _LOG_2PI, axis=-1)
-
-
-def log1m_tanh_sq(u):
-    """``log(1 - tanh(u)^2)`` computed stably as ``2 (log 2 - u - softplus(-2 u))`` (finite for any |u|)."""
-    return 2.0 * (math.log(2.0) - u - jax.nn.softplus(-2.0 * u))
-
-
-def tanh_gaussian_log_prob(u, mean, log_std):
-    """Log density of ``a = tanh(u)``, ``u ~ N(mean, exp(log_std)^2)``, evaluated at the pre-squash ``u``.
-
-    Change of variables: ``log p(a) = log N(u) - sum_i log(1 - tanh(u_i)^2)`` (the Jacobian of tanh is diagonal).
-
-    Args:
-        u: (..., nu) pre-squash sample. mean, log_std: (..., nu).
-
-    Returns:
-        (...) log-prob of the squashed action.
-    """
-    return gaussian_log_prob(u, mean, log_std) - jnp.sum(log1m_tanh_sq(u), axis=-1)
-
-
-def sample_tanh_gaussian(key, mean, log_std):
-    """Reparameterised sample ``a = tanh(mean + exp(log_std) * eps)`` and its log-prob.
-
-    Returns:
-        ``(a, log_prob)``: a (..., nu) in (-1, 1) (may round to +-1 in float32), log_prob (...).
-    """
-    u = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape, mean.dtype)
-    return jnp.tanh(u), tanh_gaussian_log_prob(u, mean, log_std)
+__all__ = [
+    "actor_loss",
+    "critic_loss",
+    "critic_target",
+    "log1m_tanh_sq",
+    "polyak_update",
+    "sample_tanh_gaussian",
+    "tanh_gaussian_log_prob",
+    "temperature_loss",
+]
 
 
 def critic_target(reward, terminated, next_q, next_log_prob, alpha, gamma):

@@ -1,8 +1,9 @@
 """Soft actor-critic in JAX: the whole training loop is one pure function of a key and the env params.
 
 One *iteration* collects ``rollout_steps`` control steps in each of the ``num_envs`` auto-resetting copies
-(``algorithms.rl.envs.TrainEnv``, actions in [-1, 1]), writes the transitions to the replay buffer, merges their
-observations into the running normaliser, then takes ``utd * num_envs * rollout_steps`` gradient steps. Each
+(``algorithms.rl.envs.TrainEnv``, actions in [-1, 1], through the learners' shared ``algorithms.rl.collector``,
+which also merges the observations into the running normaliser), writes the transitions to the replay buffer, then
+takes ``utd * num_envs * rollout_steps`` gradient steps. Each
 gradient step samples a batch uniformly from the buffer and updates, in this order, the twin critics (soft Bellman
 target from the Polyak-averaged target critics, no bootstrapping where the episode *terminated*; a time-limit
 truncation bootstraps from the stored final observation), the actor (reparameterised tanh-Gaussian, against the
@@ -20,64 +21,30 @@ import math
 from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
 
-import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import optax
 
 from algorithms.rl import envs as rl_envs
-from algorithms.rl.networks import MLP
-from algorithms.rl.normalization import RunningStats, init_stats, normalize, update_stats
+from algorithms.rl.collector import ActOutput, CollectorState, collect, init_collector
+from algorithms.rl.counter import Count, add_count, count_at_least, zero_count
+from algorithms.rl.networks import QNetwork, TanhGaussianActor, twin_q
+from algorithms.rl.normalization import RunningStats, init_stats, normalize
 from algorithms.rl.training import Learner, raw_key
 from algorithms.sac import losses, replay
 from algorithms.sac.config import Config, parse_config
-from scg_jax._pytree import pytree_dataclass
 
 NAME = "sac"
 
-
-# --------------------------------------------------------------------------------------------- networks
-class Actor(nn.Module):
-    """Tanh-squashed Gaussian policy head: ``obs (..., obs_size) -> (mean, log_std)``, each (..., action_size).
-
-    ``log_std`` depends on the observation and is clipped to ``[log_std_min, log_std_max]``; the action is
-    ``tanh(mean + exp(log_std) eps)`` (deterministic: ``tanh(mean)``).
-    """
-
-    hidden: tuple[int, ...]
-    action_size: int
-    activation: str = "relu"
-    log_std_min: float = -5.0
-    log_std_max: float = 2.0
-
-    @nn.compact
-    def __call__(self, obs):
-        # A small final layer starts every copy near mean 0, std 1: broad exploration and no saturated tanh.
-        out = MLP((*self.hidden, 2 * self.action_size), self.activation, final_scale=0.01)(obs)
-        mean, log_std = jnp.split(out, 2, axis=-1)
-        return mean, jnp.clip(log_std, self.log_std_min, self.log_std_max)
+# The shared networks (``algorithms.rl.networks``) under SAC's names.
+Actor = TanhGaussianActor
+Critic = QNetwork
 
 
-class Critic(nn.Module):
-    """One soft Q network: ``(obs (..., obs_size), action (..., action_size)) -> Q (...)``."""
-
-    hidden: tuple[int, ...]
-    activation: str = "relu"
-
-    @nn.compact
-    def __call__(self, obs, action):
-        return MLP((*self.hidden, 1), self.activation)(jnp.concatenate([obs, action], axis=-1))[..., 0]
-
-
-def make_networks(config: Config, action_size: int) -> tuple[Actor, Critic]:
+def make_networks(config: Config, action_size: int) -> tuple[TanhGaussianActor, QNetwork]:
     """The actor and critic modules of ``config``."""
-    actor = Actor(config.hidden, action_size, config.activation, config.log_std_min, config.log_std_max)
-    return actor, Critic(config.hidden, config.activation)
-
-
-def twin_q(critic: Critic, critic_params, obs, action):
-    """Both critics: ``critic_params`` holds two parameter sets stacked on a leading axis. Returns (2, ...)."""
-    return jax.vmap(critic.apply, in_axes=(0, None, None))(critic_params, obs, action)
+    actor = TanhGaussianActor(config.hidden, action_size, config.activation, config.log_std_min, config.log_std_max)
+    return actor, QNetwork(config.hidden, config.activation)
 
 
 # --------------------------------------------------------------------------------------------- policy
@@ -125,18 +92,32 @@ def make_policy_from_config(config_dict: Mapping | Config, obs_size: int, action
 
 
 # --------------------------------------------------------------------------------------------- state
-@pytree_dataclass
-class RunnerState:
-    """Everything the training loop carries (a pytree; checkpointable).
+class Learning(NamedTuple):
+    """What a gradient step changes (the carry of the gradient-step scan).
 
     Attributes:
         actor, critic, target_critic: flax params (critics: two sets stacked on a leading axis).
         log_alpha: scalar log temperature. actor_opt, critic_opt, alpha_opt: optax states.
+    """
+
+    actor: Any
+    critic: Any
+    target_critic: Any
+    log_alpha: Any
+    actor_opt: Any
+    critic_opt: Any
+    alpha_opt: Any
+
+
+class RunnerState(NamedTuple):
+    """Everything the training loop carries (a pytree; checkpointable).
+
+    Attributes:
+        actor, critic, target_critic, log_alpha, actor_opt, critic_opt, alpha_opt: as in ``Learning``.
         buffer: ``replay.ReplayBuffer`` of dicts ``obs, action, reward, next_obs, terminated, cost``.
-        obs_stats: ``RunningStats`` of the observations collected so far.
-        env_state, obs: batched env state and the observations (N, obs_size) to act on next.
-        episode_stats: running per-copy episode sums. last_episode: the episode means last reported.
-        key: PRNG key. iteration, env_steps, grad_steps: int32 counters.
+        collector: ``algorithms.rl.collector.CollectorState`` (batched env state, observations to act on next,
+            episode sums, the last episode means, the normaliser of the observations collected so far).
+        key: raw PRNG key. iteration, env_steps, grad_steps: ``Count``s (exact past 2^31).
     """
 
     actor: Any
@@ -147,15 +128,21 @@ class RunnerState:
     critic_opt: Any
     alpha_opt: Any
     buffer: replay.ReplayBuffer
-    obs_stats: RunningStats
-    env_state: Any
-    obs: Any
-    episode_stats: Any
-    last_episode: dict
+    collector: CollectorState
     key: Any
-    iteration: Any
-    env_steps: Any
-    grad_steps: Any
+    iteration: Count
+    env_steps: Count
+    grad_steps: Count
+
+    @property
+    def obs_stats(self) -> RunningStats:
+        """The observation normaliser (``collector.obs_stats``)."""
+        return self.collector.obs_stats
+
+    @property
+    def learning(self) -> Learning:
+        """The fields a gradient step changes."""
+        return Learning(*(getattr(self, name) for name in Learning._fields))
 
 
 LOSS_METRICS = ("critic_loss", "actor_loss", "alpha_loss", "alpha", "entropy", "q_mean")
@@ -187,7 +174,6 @@ def _build(config: Config, env) -> _Parts:
 
     def init(key, params) -> RunnerState:
         key_env, key_actor, key_critic, key = jax.random.split(key, 4)
-        obs, env_state = train_env.reset(key_env, params)
         dummy_obs, dummy_action = jnp.zeros((obs_size,)), jnp.zeros((action_size,))
         actor_params = actor.init(key_actor, dummy_obs)
         critic_params = jax.vmap(critic.init, in_axes=(0, None, None))(
@@ -211,27 +197,23 @@ def _build(config: Config, env) -> _Parts:
             critic_opt=critic_tx.init(critic_params),
             alpha_opt=alpha_tx.init(log_alpha),
             buffer=replay.init_buffer(config.capacity, example),
-            obs_stats=init_stats(obs_size),
-            env_state=env_state,
-            obs=obs.astype(jnp.float32),
-            episode_stats=rl_envs.init_episode_stats(num_envs),
-            last_episode=rl_envs.initial_episode_means(),
+            collector=init_collector(train_env, key_env, params, jnp.float32),
             key=raw_key(key),  # raw data, as PPO: the state serialises the same whatever key was passed
-            iteration=jnp.zeros((), jnp.int32),
-            env_steps=jnp.zeros((), jnp.int32),
-            grad_steps=jnp.zeros((), jnp.int32),
+            iteration=zero_count(),
+            env_steps=zero_count(),
+            grad_steps=zero_count(),
         )
 
-    def gradient_step(carry, key):
-        actor_params, critic_params, target_params, log_alpha, actor_opt, critic_opt, alpha_opt, buffer, stats = carry
+    def gradient_step(carry: Learning, key, buffer, stats) -> tuple[Learning, dict]:
         key_sample, key_next, key_pi = jax.random.split(key, 3)
         batch = replay.sample(buffer, key_sample, batch_size)
         obs, next_obs = norm(stats, batch["obs"]), norm(stats, batch["next_obs"])
+        log_alpha = carry.log_alpha
         alpha = jnp.exp(log_alpha)
 
-        next_mean, next_log_std = actor.apply(actor_params, next_obs)
+        next_mean, next_log_std = actor.apply(carry.actor, next_obs)
         next_action, next_log_prob = losses.sample_tanh_gaussian(key_next, next_mean, next_log_std)
-        next_q = twin_q(critic, target_params, next_obs, next_action)
+        next_q = twin_q(critic, carry.target_critic, next_obs, next_action)
         target = losses.critic_target(
             config.reward_scale * batch["reward"], batch["terminated"], next_q, next_log_prob, alpha, config.gamma
         )
@@ -241,9 +223,9 @@ def _build(config: Config, env) -> _Parts:
             q = twin_q(critic, c_params, obs, batch["action"])
             return losses.critic_loss(q, target), q
 
-        (critic_loss, q), critic_grads = jax.value_and_grad(critic_objective, has_aux=True)(critic_params)
-        updates, critic_opt = critic_tx.update(critic_grads, critic_opt, critic_params)
-        critic_params = optax.apply_updates(critic_params, updates)
+        (critic_loss, q), critic_grads = jax.value_and_grad(critic_objective, has_aux=True)(carry.critic)
+        updates, critic_opt = critic_tx.update(critic_grads, carry.critic_opt, carry.critic)
+        critic_params = optax.apply_updates(carry.critic, updates)
 
         def actor_objective(a_params):
             mean, log_std = actor.apply(a_params, obs)
@@ -251,16 +233,17 @@ def _build(config: Config, env) -> _Parts:
             q_pi = twin_q(critic, critic_params, obs, action)
             return losses.actor_loss(q_pi, log_prob, alpha), log_prob
 
-        (actor_loss, log_prob), actor_grads = jax.value_and_grad(actor_objective, has_aux=True)(actor_params)
-        updates, actor_opt = actor_tx.update(actor_grads, actor_opt, actor_params)
-        actor_params = optax.apply_updates(actor_params, updates)
+        (actor_loss, log_prob), actor_grads = jax.value_and_grad(actor_objective, has_aux=True)(carry.actor)
+        updates, actor_opt = actor_tx.update(actor_grads, carry.actor_opt, carry.actor)
+        actor_params = optax.apply_updates(carry.actor, updates)
 
+        alpha_opt = carry.alpha_opt
         alpha_loss, alpha_grad = jax.value_and_grad(losses.temperature_loss)(log_alpha, log_prob, target_entropy)
         if config.autotune_alpha:
             updates, alpha_opt = alpha_tx.update(alpha_grad, alpha_opt, log_alpha)
             log_alpha = optax.apply_updates(log_alpha, updates)
 
-        target_params = losses.polyak_update(target_params, critic_params, config.tau)
+        target_params = losses.polyak_update(carry.target_critic, critic_params, config.tau)
         metrics = {
             "critic_loss": critic_loss,
             "actor_loss": actor_loss,
@@ -269,92 +252,71 @@ def _build(config: Config, env) -> _Parts:
             "entropy": -jnp.mean(log_prob),
             "q_mean": jnp.mean(q),
         }
-        carry = (actor_params, critic_params, target_params, log_alpha, actor_opt, critic_opt, alpha_opt, buffer, stats)
-        return carry, metrics
-
-    def learn(carry, key):
-        carry, step_metrics = jax.lax.scan(gradient_step, carry, jax.random.split(key, config.grad_steps_per_iteration))
-        return carry, jax.tree.map(lambda m: jnp.mean(m).astype(jnp.float32), step_metrics)
-
-    def skip(carry, key):
-        metrics = {name: jnp.zeros((), jnp.float32) for name in LOSS_METRICS}
-        return carry, {**metrics, "alpha": jnp.exp(carry[3]).astype(jnp.float32)}
+        new = Learning(actor_params, critic_params, target_params, log_alpha, actor_opt, critic_opt, alpha_opt)
+        return new, metrics
 
     def iteration(state: RunnerState, params, learning):
         """One iteration; ``learning`` (bool scalar, may be traced) selects policy actions and gradient steps, or
         uniform random actions and none (warm-up). A ``learning`` that does not depend on vmapped values keeps
         the ``lax.cond`` a real branch under ``jax.vmap``, so warm-up iterations skip the gradient work."""
         key, key_collect, key_learn = jax.random.split(state.key, 3)
-        policy_params = PolicyParams(state.actor, state.obs_stats)
+        policy_params = PolicyParams(state.actor, state.collector.obs_stats)
 
-        def env_step(carry, key_step):
-            env_state, obs, episode_stats = carry
+        def act(obs, key_step) -> ActOutput:
             key_policy, key_random = jax.random.split(key_step)
             policy_action = jax.vmap(policy_fn, in_axes=(None, 0, 0))(
                 policy_params, obs, jax.random.split(key_policy, num_envs)
             )
             random_action = jax.random.uniform(key_random, (num_envs, action_size), minval=-1.0, maxval=1.0)
-            action = jnp.where(learning, policy_action, random_action)
-            out = train_env.step(env_state, action, params)
-            episode_stats, finished = rl_envs.update_episode_stats(episode_stats, out)
-            transition = {
-                "obs": obs,
-                "action": action,
-                "reward": out.reward,
-                "next_obs": out.final_obs,
-                "terminated": out.terminated,
-                "cost": out.cost,
-            }
-            return (out.state, out.obs.astype(jnp.float32), episode_stats), (transition, finished)
+            return ActOutput(jnp.where(learning, policy_action, random_action), {})
 
-        (env_state, obs, episode_stats), (transitions, finished) = jax.lax.scan(
-            env_step,
-            (state.env_state, state.obs, state.episode_stats),
-            jax.random.split(key_collect, config.rollout_steps),
+        collector, steps, episode = collect(
+            train_env,
+            params,
+            state.collector,
+            act,
+            key_collect,
+            config.rollout_steps,
+            update_normalizer=config.normalize_observations,
         )
+        transitions = {
+            "obs": steps.obs,
+            "action": steps.action,
+            "reward": steps.reward,
+            "next_obs": steps.next_obs,
+            "terminated": steps.terminated,
+            "cost": steps.cost,
+        }
         flat = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), transitions)
         buffer = replay.add(state.buffer, flat)
-        obs_stats = update_stats(state.obs_stats, flat["obs"]) if config.normalize_observations else state.obs_stats
+        obs_stats = collector.obs_stats
 
-        carry = (
-            state.actor,
-            state.critic,
-            state.target_critic,
-            state.log_alpha,
-            state.actor_opt,
-            state.critic_opt,
-            state.alpha_opt,
-            buffer,
-            obs_stats,
-        )
-        carry, loss_metrics = jax.lax.cond(learning, learn, skip, carry, key_learn)
-        num_grad = jnp.where(learning, config.grad_steps_per_iteration, 0).astype(jnp.int32)
-        actor_params, critic_params, target_params, log_alpha, actor_opt, critic_opt, alpha_opt, _, _ = carry
+        def learn(carry, key):
+            carry, step_metrics = jax.lax.scan(
+                lambda c, k: gradient_step(c, k, buffer, obs_stats),
+                carry,
+                jax.random.split(key, config.grad_steps_per_iteration),
+            )
+            return carry, jax.tree.map(lambda m: jnp.mean(m).astype(jnp.float32), step_metrics)
 
-        episode = rl_envs.episode_means(finished, state.last_episode)
-        last_episode = {name: episode[name] for name in rl_envs.EPISODE_METRICS}
-        new_state = RunnerState(
-            actor=actor_params,
-            critic=critic_params,
-            target_critic=target_params,
-            log_alpha=log_alpha,
-            actor_opt=actor_opt,
-            critic_opt=critic_opt,
-            alpha_opt=alpha_opt,
+        def skip(carry, key):
+            metrics = {name: jnp.zeros((), jnp.float32) for name in LOSS_METRICS}
+            return carry, {**metrics, "alpha": jnp.exp(carry.log_alpha).astype(jnp.float32)}
+
+        carry, loss_metrics = jax.lax.cond(learning, learn, skip, state.learning, key_learn)
+        num_grad = jnp.where(learning, config.grad_steps_per_iteration, 0).astype(jnp.uint32)
+        new_state = state._replace(
+            **carry._asdict(),
             buffer=buffer,
-            obs_stats=obs_stats,
-            env_state=env_state,
-            obs=obs,
-            episode_stats=episode_stats,
-            last_episode=last_episode,
+            collector=collector,
             key=key,
-            iteration=state.iteration + 1,
-            env_steps=state.env_steps + config.transitions_per_iteration,
-            grad_steps=state.grad_steps + num_grad,
+            iteration=add_count(state.iteration, 1),
+            env_steps=add_count(state.env_steps, config.transitions_per_iteration),
+            grad_steps=add_count(state.grad_steps, num_grad),
         )
         metrics = {
-            "env_steps": new_state.env_steps.astype(jnp.float32),
-            "grad_steps": new_state.grad_steps.astype(jnp.float32),
+            "env_steps": new_state.env_steps,
+            "grad_steps": new_state.grad_steps,
             **episode,
             **{name: loss_metrics[name].astype(jnp.float32) for name in LOSS_METRICS},
         }
@@ -372,7 +334,8 @@ def make_train(config: Config | Mapping | None, env) -> Callable:
 
     Returns:
         ``train``: ``key`` a PRNG key, ``params`` unbatched ``EnvParams``; ``metrics`` a dict of
-        (num_iterations,) arrays: ``env_steps``, ``grad_steps``, ``episode_return``, ``episode_cost``,
+        (num_iterations,) arrays: ``env_steps``, ``grad_steps`` (``algorithms.rl.counter.Count``s of (num_iterations,)
+        uint32 words; ``count_value`` gives the exact integers), ``episode_return``, ``episode_cost``,
         ``episode_rmse``, ``episode_length``, ``episodes_finished`` and the means over the iteration's gradient
         steps of ``critic_loss``, ``actor_loss``, ``alpha_loss``, ``alpha``, ``entropy``, ``q_mean`` (0 during
         warm-up).
@@ -394,7 +357,7 @@ def make_train(config: Config | Mapping | None, env) -> Callable:
 
 def policy_params(state: RunnerState) -> PolicyParams:
     """The part of the runner state a policy needs (saved as ``policy.msgpack`` by the host driver)."""
-    return PolicyParams(actor=state.actor, obs_stats=state.obs_stats)
+    return PolicyParams(actor=state.actor, obs_stats=state.collector.obs_stats)
 
 
 def make_learner(config: Config | Mapping | None, env):
@@ -410,7 +373,7 @@ def make_learner(config: Config | Mapping | None, env):
     policy_fn = make_policy_fn(config, parts.train_env.action_size)
 
     def update(state: RunnerState, params):
-        return parts.iteration(state, params, state.iteration >= warmup)
+        return parts.iteration(state, params, count_at_least(state.iteration, warmup))
 
     def make_policy(p: PolicyParams):
         return lambda obs, key=None: policy_fn(p, obs, key)
@@ -421,6 +384,7 @@ def make_learner(config: Config | Mapping | None, env):
         init=parts.init,
         update=update,
         num_iterations=config.num_iterations,
+        steps_per_iteration=config.transitions_per_iteration,
         policy_params=policy_params,
         make_policy=make_policy,
     )

@@ -1,0 +1,117 @@
+"""``scg-jax train``: a folder holding a run, --resume / --overwrite, Ctrl-C, progress in a log, extending a run."""
+
+import json
+import shlex
+
+import pytest
+
+import algorithms.rl.training as training
+from scg_jax.cli import main
+
+# 1-s episodes; 2 iterations of 16 copies x 16 steps (512 env steps).
+_ENV = ["--config", "configs/cartpole_stabilization.yaml", "--set", "env.episode_len_sec=1"]
+_TINY_PPO = [
+    "--set",
+    "training.ppo.total_env_steps=512",
+    "--set",
+    "training.ppo.num_envs=16",
+    "--set",
+    "training.ppo.rollout_length=16",
+    "--set",
+    "training.ppo.num_minibatches=2",
+    "--set",
+    "training.ppo.lr_decay=false",
+]
+
+
+def _fake_run(folder, algo="ppo"):
+    folder.mkdir()
+    (folder / "checkpoint.json").write_text(json.dumps({"algo": algo, "iteration": 1}))
+    (folder / "progress.csv").write_text("iteration\n1\n")
+
+
+def _error(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    return err[-1]
+
+
+def test_a_folder_holding_a_run_is_refused_naming_the_flags(tmp_path, capsys):
+    out = tmp_path / "run"
+    _fake_run(out)
+    before = (out / "checkpoint.json").read_text()
+    assert main(["train", *_ENV, *_TINY_PPO, "--algo", "ppo", "--out", str(out)]) == 2
+    message = _error(capsys)
+    assert message.startswith("scg-jax train: error: argument --out: ")
+    assert "already holds a training run (checkpoint.json, progress.csv); pass --resume to continue it or " in message
+    assert message.endswith("--overwrite to replace it")
+    assert (out / "checkpoint.json").read_text() == before
+
+
+def test_resume_of_another_algorithms_run_says_so_plainly(tmp_path, capsys):
+    out = tmp_path / "run"
+    _fake_run(out, algo="ppo")
+    assert main(["train", "--system", "cartpole", "--algo", "sac", "--out", str(out), "--resume"]) == 2
+    assert "argument --resume: " in (message := _error(capsys))
+    assert "holds a ppo run, not sac; resume it with --algo ppo" in message
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--resume", "--overwrite"], "argument --overwrite: not allowed with argument --resume"),
+        (["--checkpoint-interval", "0"], "argument --checkpoint-interval: expected a positive number of seconds"),
+        (["--progress-interval", "soon"], "argument --progress-interval: expected a positive number of seconds"),
+    ],
+)
+def test_bad_train_flags_exit_2_with_one_line(tmp_path, capsys, flags, message):
+    out = tmp_path / "run"
+    assert main(["train", "--system", "cartpole", "--algo", "ppo", "--out", str(out), *flags]) == 2
+    assert message in _error(capsys)
+    assert not out.exists()
+
+
+def test_ctrl_c_prints_the_checkpoint_and_the_resume_command(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "run"
+
+    def interrupted(learner, env, params, key, out_dir, **options):
+        assert options["checkpoint_seconds"] == 5.0 and options["progress_seconds"] == 2.0
+        raise training.TrainingInterrupted(out_dir, 1, 2, out_dir / "checkpoint.msgpack")
+
+    monkeypatch.setattr(training, "run_training", interrupted)
+    args = ["train", *_ENV, *_TINY_PPO, "--algo", "ppo", "--out", str(out), "--seed", "3"]
+    assert main([*args, "--checkpoint-interval", "5", "--progress-interval", "2"]) == 130
+    printed = capsys.readouterr()
+    assert "Traceback" not in printed.err
+    assert f"interrupted: iteration 1/2 saved in {out / 'checkpoint.msgpack'}" in " ".join(printed.out.split())
+    command = printed.out.strip().splitlines()[-1]
+    words = shlex.split(command)
+    assert words[:2] == ["scg-jax", "train"] and "--resume" in words
+    assert words[words.index("--out") + 1] == str(out) and words[words.index("--seed") + 1] == "3"
+    assert words[words.index("--checkpoint-interval") + 1] == "5.0"
+    assert "training.ppo.num_envs=16" in words and "--overwrite" not in words
+
+
+def test_train_logs_progress_lines_and_extends_a_finished_run(tmp_path, capsys):
+    """Piped output (not a terminal) gets plain progress lines; --resume with a raised budget continues the run and
+    ends where a run of that budget in one go ends."""
+    out, whole = tmp_path / "run", tmp_path / "whole"
+    common = ["train", *_ENV, "--algo", "ppo", "--eval-episodes", "2", "--progress-interval", "0.001"]
+    assert main([*common, *_TINY_PPO, "--out", str(out)]) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("ppo: iteration")]
+    assert lines and lines[-1].startswith("ppo: iteration 2/2 (100.0%), 512 env steps, ")
+    # Twice the budget: resumed at iteration 2, on to 4; the same policy as 4 iterations in one go.
+    longer = [*_TINY_PPO, "--set", "training.ppo.total_env_steps=1024"]
+    assert main([*common, *longer, "--out", str(out), "--resume"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["training"]["resumed_from_iteration"] == 2 and metrics["training"]["env_steps"] == 1024
+    assert main([*common, *longer, "--out", str(whole)]) == 0
+    assert (out / "policy.msgpack").read_bytes() == (whole / "policy.msgpack").read_bytes()
+    # Another setting than the budget is named.
+    other = [*longer, "--set", "training.ppo.learning_rate=0.0003"]
+    assert main([*common, *other, "--out", str(out), "--resume"]) == 2
+    message = _error(capsys)
+    assert "argument --resume: " in message and "learning_rate: 0.001 in the checkpoint, 0.0003 now" in message
+    # So is another env.
+    assert main([*common, *longer, "--set", "env.ctrl_freq=25", "--out", str(out), "--resume"]) == 2
+    message = _error(capsys)
+    assert "was trained on another env: env.ctrl_freq: 50 in the checkpoint, 25 now." in message
