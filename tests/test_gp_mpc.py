@@ -9,7 +9,8 @@ import pytest
 import scg_jax
 from algorithms import gp, make_controller
 from algorithms.evaluation import evaluate
-from algorithms.gp_mpc.controller import LearningResult, is_run, learn, load_run, make_gp_mpc, save_run
+from algorithms.gp_mpc.controller import LearningResult, learn, make_gp_mpc
+from algorithms.gp_mpc.run import is_run, load_run, save_run, write_learning_curve
 
 # The data-efficiency setting of the paper (Fig. 6): 10 Hz, 5 s episodes, x0 in +-0.3 m and +-0.1 rad.
 PAPER = dict(
@@ -80,6 +81,12 @@ def test_a_saved_run_loads_to_the_same_controller(paper_cartpole, tmp_path):
     result = LearningResult(posterior, controller, [{"round": 0, "rmse": 1.0}], (z, e))
     save_run(tmp_path, result, options, system="cartpole", prior_scale=1.5)
     assert is_run(tmp_path) and not is_run(tmp_path / "missing")
+    history = [{"round": 0, "transitions": 0, "data_seconds": 0.0, "rmse": 0.8, "rmse_std": 0.1},
+               {"round": 1, "transitions": 200, "data_seconds": 20.0, "rmse": 0.2, "rmse_std": 0.05}]  # fmt: skip
+    write_learning_curve(tmp_path, history)
+    rows = (tmp_path / "learning_curve.csv").read_text().splitlines()
+    assert rows[0].startswith("round,transitions,data_seconds,rmse") and rows[2].startswith("1,200,20.0,0.2,0.05")
+    assert (tmp_path / "learning_curve.png").read_bytes()[:4] == b"\x89PNG"
     loaded = load_run(tmp_path, env, prior)
     a = evaluate(env, params, controller, jax.random.key(5), 1, measure_time=False)
     b = evaluate(env, params, loaded, jax.random.key(5), 1, measure_time=False)

@@ -15,7 +15,6 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import NamedTuple
 
 import jax
@@ -212,65 +211,3 @@ def learn(env, params, prior_params, options=None, progress: Callable[[dict], No
             progress(history[-1])
         controller = collector = make_gp_mpc(env, prior_params, opts, posterior)
     return LearningResult(posterior, controller, history, (inputs, targets))
-
-
-# ------------------------------------------------------------------------------------------------ saved runs
-RUN_NAME = "gp_mpc"  # DIR/gp_mpc.json (what was learned and how) and DIR/gp_mpc.npz (the GP's arrays)
-
-
-def save_run(directory, result: LearningResult, options, *, system: str, prior_scale: float, extra=None) -> None:
-    """Write a learned GP-MPC to ``directory``: ``gp_mpc.npz`` (the posterior) and ``gp_mpc.json`` (algorithm,
-    system, prior scale, options, per-round history, ``extra``), each whole or not at all."""
-    import io
-
-    from scg_jax.files import write_atomic, write_json
-
-    if result.posterior is None:
-        raise ValueError(f"{PATH}.rounds: nothing was learned (0 rounds); ask for at least 1")
-    opts = parse_options(Options, options, PATH)
-    post = gp.to_numpy(result.posterior)
-    arrays = {
-        "inputs": post.inputs, "weights": post.weights, "var_matrix": post.var_matrix,
-        "length_scales": post.hyperparams.length_scales, "signal_var": post.hyperparams.signal_var,
-        "noise_var": post.hyperparams.noise_var,
-    }  # fmt: skip
-    buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
-    directory = Path(directory)
-    write_atomic(directory / f"{RUN_NAME}.npz", lambda file: file.write(buffer.getvalue()))
-    write_json(
-        directory / f"{RUN_NAME}.json",
-        {
-            "algo": "gp_mpc",
-            "system": system,
-            "prior_scale": prior_scale,
-            "kernel": post.kernel,
-            "options": dataclasses.asdict(opts),
-            "history": result.history,
-            **(extra or {}),
-        },
-    )
-
-
-def is_run(directory) -> bool:
-    """Whether ``directory`` holds a saved GP-MPC (``save_run``)."""
-    return (Path(directory) / f"{RUN_NAME}.json").is_file()
-
-
-def load_run(directory, env, prior_params, options=None) -> GPMPC:
-    """The GP-MPC saved in ``directory`` for ``env`` and the prior ``prior_params``; ``options`` override the saved
-    MPC options (the GP stays as learned). Refuses a run learned on another system."""
-    import json
-
-    directory = Path(directory)
-    meta = json.loads((directory / f"{RUN_NAME}.json").read_text())
-    if meta.get("system") != env.system.name:
-        raise ValueError(
-            f"{directory / RUN_NAME}.json: the GP was learned on the {meta.get('system')} and cannot control the "
-            f"{env.system.name}"
-        )
-    with np.load(directory / f"{RUN_NAME}.npz") as arrays:
-        hyper = gp.hyperparams(arrays["length_scales"], arrays["signal_var"], arrays["noise_var"])
-        posterior = gp.GPPosterior(arrays["inputs"], arrays["weights"], arrays["var_matrix"], hyper, meta["kernel"])
-    saved = {k: (tuple(v) if isinstance(v, list) else v) for k, v in meta["options"].items()}
-    return make_gp_mpc(env, prior_params, {**saved, **dict(options or {})}, posterior)
