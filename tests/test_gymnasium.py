@@ -20,7 +20,7 @@ from scg_jax.adapters.gymnasium import (
     ScgGymEnv,
     ScgVectorEnv,
 )
-from scg_jax.rollout import next_reset_key
+from scg_jax.rollout import initial_reset_keys, next_reset_key
 
 IDS = tuple(GYMNASIUM_IDS.values())
 N = 4  # copies in the vector tests (one compilation per batch size)
@@ -313,7 +313,7 @@ def test_vector_env_matches_the_functional_env(vector_env_options):
     fenv, params = envs.functional_env, envs.params
     reset, step, _ = _vmapped(fenv)
     obs, info = envs.reset(seed=7)
-    f_obs, f_state = reset(jax.random.split(jax.random.key(7), n), params)
+    f_obs, f_state = reset(initial_reset_keys(jax.random.key(7), n), params)
     np.testing.assert_allclose(obs, np.asarray(f_obs), rtol=1e-6, atol=1e-7)
     np.testing.assert_array_equal(info["x0"], np.asarray(f_state.x))
     lengths = info["physics"]["pole_half_length"]
@@ -341,7 +341,7 @@ def test_vector_autoreset_next_step_and_same_step(vector_env_options):
     same_env = ScgVectorEnv(n, "cartpole", autoreset_mode=AutoresetMode.SAME_STEP, **vector_env_options)
     fenv, params = next_env.functional_env, next_env.params
     reset, step, next_key = _vmapped(fenv)
-    _, f_state = reset(jax.random.split(jax.random.key(0), n), params)
+    _, f_state = reset(initial_reset_keys(jax.random.key(0), n), params)
     next_env.reset(seed=0)
     same_env.reset(seed=0)
     a = np.zeros((n, 1), np.float32)
@@ -385,7 +385,7 @@ def test_vector_autoreset_of_some_copies():
     reset, step, _ = _vmapped(fenv)
     auto = jax.jit(jax.vmap(lambda s, a: scg_jax.auto_reset_step(fenv, s, a, params)))
     envs.reset(seed=3)
-    _, f_state = reset(jax.random.split(jax.random.key(3), n), params)
+    _, f_state = reset(initial_reset_keys(jax.random.key(3), n), params)
     a = np.array([[1.0], [1.0], [0.0], [0.0]], np.float32)
     crashed = False
     for _ in range(60):

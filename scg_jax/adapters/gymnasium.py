@@ -30,9 +30,11 @@ Conventions:
   ``env.reset(jax.random.key(s), params)`` of the functional env. ``reset()`` continues the chain with the key
   ``scg_jax.rollout.next_reset_key(state.key)`` of the current episode (the one
   ``scg_jax.rollout.auto_reset_step`` uses), so a single env reset after every episode replays one copy of an
-  auto-resetting batched rollout, and the vector env's autoreset is ``auto_reset_step``'s. The vector env's
-  ``reset(seed=s)`` uses ``jax.random.split(jax.random.key(s), num_envs)``, one key per copy, or one
-  ``jax.random.key(s_i)`` per copy for a list of seeds.
+  auto-resetting batched rollout, and the vector env's autoreset is ``scg_jax.rollout.restart_done``, the one
+  ``auto_reset_step`` uses. The vector env's ``reset(seed=s)`` uses
+  ``scg_jax.rollout.initial_reset_keys(jax.random.key(s), num_envs)``, the reset keys of
+  ``make_rollout``'s ``rollout(jax.random.key(s), params)``, or one ``jax.random.key(s_i)`` per copy for a list
+  of seeds; so with ``autoreset_mode=SAME_STEP`` it replays that rollout's episodes.
 - **Info.** Every step: ``cost`` (1.0 at a step in violation of a constraint), ``constraint_values``,
   ``constraint_violation``, ``mse`` and the rest of the functional env's info (``quadratic_cost``,
   ``out_of_bounds``, ``goal_reached``, ``nonfinite``, ``step``, ``u_cmd``, ``u``, ``f_ext``) as numpy values in the
@@ -61,7 +63,7 @@ from gymnasium.vector.utils import batch_space
 
 from scg_jax.config import Config, EnvConfig, load_config, make_from_config
 from scg_jax.env import Env, EnvParams, EnvState, make
-from scg_jax.rollout import next_reset_key
+from scg_jax.rollout import initial_reset_keys, next_reset_key, restart_done
 
 DEFAULT_ACTION_MODE = "normalized"
 RENDER_MODES = ("rgb_array",)
@@ -246,15 +248,9 @@ class _Compiled:
         return out, {**out.info, "cost": out.cost}
 
     def _reset_where(self, done, state_keys, obs, state):
-        """Fresh episodes (keys from ``state_keys``, as ``auto_reset_step``) where ``done``; the reset is skipped
-        when no copy is done."""
-
-        def reset_all(_):
-            keys = jax.vmap(next_reset_key)(state_keys)
-            return jax.vmap(self.env.reset, in_axes=(0, None))(keys, self.params)
-
-        fresh_obs, fresh_state = jax.lax.cond(jnp.any(done), reset_all, lambda _: (obs, state), None)
-        return _select(done, fresh_obs, obs), jax.tree.map(lambda new, old: _select(done, new, old), fresh_state, state)
+        """Fresh episodes where ``done``: ``scg_jax.rollout.restart_done``, the suite's one auto-reset."""
+        reset = jax.vmap(self.env.reset, in_axes=(0, None))
+        return restart_done(done, state_keys, (obs, state), lambda keys: reset(keys, self.params), True)
 
     def _vector_step_next(self, state, prev_done, action):
         """NEXT_STEP: copies done at the previous step start a new episode instead of stepping (reward 0,
@@ -575,7 +571,7 @@ class ScgVectorEnv(VectorEnv):
             return jax.random.split(jax.random.key(int(self._np_random.integers(_MAX_SEED))), n)
         if isinstance(seed, int | np.integer) and not isinstance(seed, bool):
             self._np_random, self._np_random_seed = seeding.np_random(int(seed))
-            return jax.random.split(jax.random.key(int(seed)), n)
+            return initial_reset_keys(jax.random.key(int(seed)), n)
         seeds = list(seed)
         if len(seeds) != n or not all(isinstance(s, int | np.integer) and s >= 0 for s in seeds):
             raise ValueError(f"seed: expected None, a non-negative integer or {n} non-negative integers, got {seed!r}")
@@ -584,8 +580,9 @@ class ScgVectorEnv(VectorEnv):
     def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None):
         """Reset every copy, or those in ``options["reset_mask"]`` ((N,) bool).
 
-        ``seed``: an integer (copy i starts from ``jax.random.split(jax.random.key(seed), N)[i]``), a list of N
-        integers (copy i from ``jax.random.key(seed[i])``) or ``None`` (continue each copy's key chain).
+        ``seed``: an integer (copy i starts from ``scg_jax.rollout.initial_reset_keys(jax.random.key(seed), N)[i]``,
+        as copy i of ``make_rollout``'s ``rollout(jax.random.key(seed), params)``), a list of N integers (copy i
+        from ``jax.random.key(seed[i])``) or ``None`` (continue each copy's key chain).
         """
         options = dict(options or {})
         mask = options.pop("reset_mask", None)
