@@ -50,7 +50,7 @@ from matplotlib.ticker import MaxNLocator
 
 from scg_jax.files import write_atomic
 
-__all__ = ["DRAWN_ARM", "SUFFIXES", "animate", "animate_rollout_file", "animation_frames", "render_frame"]
+__all__ = ["DRAWN_ARM", "SUFFIXES", "VIEWS", "animate", "animate_rollout_file", "animation_frames", "render_frame"]
 
 SUFFIXES = (".gif", ".mp4")
 DRAWN_ARM = 0.15  # m: drawn quadrotor arm (centre to motor); the real one is 0.0397 m
@@ -660,6 +660,8 @@ _SCENE_CLASSES = {
     "quadrotor_2d": _QuadrotorPlanarScene,
     "quadrotor_3d": _Quadrotor3DScene,
 }
+VIEWS = tuple(_SCENE_CLASSES)
+"""The views a ``System.view`` may name."""
 _SCENES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 _SCENES_LOCK = threading.Lock()
 
@@ -688,12 +690,12 @@ def _scene(env, width: int, height: int) -> _Scene:
     with _SCENES_LOCK:
         scene = cache.get((width, height))
         if scene is None:
-            name = env.system.name
-            if name not in _SCENE_CLASSES:
+            view = env.system.view
+            if view not in _SCENE_CLASSES:
                 raise ValueError(
-                    f"render: no view for system {name!r}; systems with a view: {', '.join(_SCENE_CLASSES)}"
+                    f"render: system {env.system.name!r} asks for view {view!r}; allowed views are {', '.join(VIEWS)}"
                 )
-            scene = cache[(width, height)] = _SCENE_CLASSES[name](env.system, width, height)
+            scene = cache[(width, height)] = _SCENE_CLASSES[view](env.system, width, height)
         return scene
 
 

@@ -471,3 +471,22 @@ def test_check_env_with_rendering():
     frames = envs.render()
     assert len(frames) == N and all(frame.shape == (480, 480, 3) for frame in frames)
     assert not np.array_equal(frames[0], frames[1])  # each copy is drawn in its own state
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_ids_default_to_a_positive_reward_so_ending_early_costs_return(env_id):
+    env = gymnasium.make(env_id, **SHORT)
+    fenv = env.unwrapped.functional_env
+    assert fenv.reward_type == "exponential" and fenv.done_on_out_of_bounds
+    env.reset(seed=0)
+    _, reward, *_ = env.step(np.zeros(fenv.nu, np.float32))
+    assert 0.0 < reward <= 1.0
+    quadratic = gymnasium.make(env_id, reward_type="quadratic", **SHORT)
+    assert quadratic.unwrapped.functional_env.reward_type == "quadratic"  # a keyword overrides the default
+
+
+def test_a_config_decides_the_reward_type_itself():
+    env = gymnasium.make(
+        "scg_jax/CartPole-v0", config="configs/cartpole_stabilization.yaml", overrides=["env.reward_type=quadratic"]
+    )
+    assert env.unwrapped.functional_env.reward_type == "quadratic"  # not the adapters' exponential default

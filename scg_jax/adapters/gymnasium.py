@@ -20,6 +20,11 @@ Conventions:
   that says so, as the shipped ones do) the space is ``Box(u_low, u_high)``, the actuator limits of the nominal
   plant. Actions are not clipped here: the plant saturates the input (``info["u_cmd"]`` vs ``info["u"]``). An
   action of the wrong shape raises ``ValueError``.
+- **Rewards.** Without a config the adapters default to ``reward_type="exponential"``: ``exp(-c)`` in (0, 1] per
+  step, with ``c`` the quadratic cost of ``scg_jax.env``, and episodes that terminate when the state leaves the
+  failure bounds. A positive reward makes ending early cost return, so stable-baselines3's PPO with its default
+  settings learns on every id (see ``examples/sb3_ppo.py``); with ``reward_type="quadratic"`` (-c) and
+  termination, ending early raises the return. A config decides the reward type itself; a keyword overrides both.
 - **Observations.** ``float32`` of shape ``(observation_size,)`` in ``Box(-inf, inf)``: the state is unbounded
   for the cart-pole's velocities, an episode ends *outside* the failure bounds, and observation noise is
   unbounded, so no finite box would hold every observation.
@@ -66,6 +71,10 @@ from scg_jax.env import Env, EnvParams, EnvState, make
 from scg_jax.rollout import initial_reset_keys, next_reset_key, restart_done
 
 DEFAULT_ACTION_MODE = "normalized"
+# A positive per-step reward, so that termination (falling over, leaving the bounds) costs the return of the
+# steps not taken: with the quadratic reward -c, ending an episode early *raises* the return, and standard RL
+# libraries with their default settings learn to crash (the paper's RL runs use the exponential reward too).
+DEFAULT_REWARD_TYPE = "exponential"
 RENDER_MODES = ("rgb_array",)
 _MAX_SEED = 2**31 - 1
 _CACHE_SIZE = 16
@@ -81,7 +90,7 @@ def _resolve_options(system, task, config, overrides, make_options) -> tuple[str
             raise ValueError("overrides: only allowed together with config=; pass make's options as keywords instead")
         if system is None:
             raise ValueError("system: required (cartpole, quadrotor_1d, quadrotor_2d or quadrotor_3d) unless config=")
-        options = {"action_mode": DEFAULT_ACTION_MODE, **make_options}
+        options = {"action_mode": DEFAULT_ACTION_MODE, "reward_type": DEFAULT_REWARD_TYPE, **make_options}
         return system, "stabilization" if task is None else task, options, None
     if isinstance(config, EnvConfig):
         config = Config(env=config)
@@ -354,7 +363,8 @@ class ScgGymEnv(gymnasium.Env):
             it decides every option, ``action_mode`` included.
         overrides: ``"env.key=value"`` strings applied to ``config``.
         render_width, render_height: frame size of ``render()``, pixels.
-        **make_options: options of ``scg_jax.make``; ``action_mode`` defaults to ``"normalized"`` here.
+        **make_options: options of ``scg_jax.make``; ``action_mode`` defaults to ``"normalized"`` and
+            ``reward_type`` to ``"exponential"`` here (``make``'s defaults are physical and quadratic).
 
     Attributes:
         functional_env: the ``scg_jax.Env``. params: its ``EnvParams`` (fixed per instance).
@@ -669,6 +679,7 @@ class SafetyGymnasiumVectorWrapper(VectorWrapper):
 
 __all__ = [
     "DEFAULT_ACTION_MODE",
+    "DEFAULT_REWARD_TYPE",
     "SafetyGymnasiumVectorWrapper",
     "SafetyGymnasiumWrapper",
     "ScgGymEnv",
