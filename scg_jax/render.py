@@ -555,11 +555,8 @@ class _Quadrotor3DView:
 
     def draw_static(self, scene: _Scene, static: _Static) -> None:
         ax, s = self.ax, scene.scale
-        lows = [static.fail_lo]
-        highs = [static.fail_hi]
-        for lo, hi in static.boxes:
-            lows.append(lo)
-            highs.append(hi)
+        lows = [static.fail_lo, *(lo for lo, _ in static.boxes)]
+        highs = [static.fail_hi, *(hi for _, hi in static.boxes)]
         if static.ref is not None:
             lows.append(np.nanmin(static.ref, axis=0))
             highs.append(np.nanmax(static.ref, axis=0))
@@ -573,29 +570,15 @@ class _Quadrotor3DView:
         ax.set_zlim(lo[2], hi[2])
         ax.set_box_aspect(tuple(hi - lo), zoom=0.92)
         self.floor = lo[2]
-        add = scene.static_artists.append
-        fail_lo = np.where(np.isfinite(static.fail_lo), static.fail_lo, lo)
-        fail_hi = np.where(np.isfinite(static.fail_hi), static.fail_hi, hi)
-        add(
-            ax.add_collection3d(
-                self._Line3DCollection(self._box_edges(fail_lo, fail_hi), colors=_BOUND_COLOR, linewidths=1.3 * s),
-                autolim=False,
+        # The failure box (solid red) and the constraint boxes (dashed orange), unbounded sides at the view's edge.
+        styles = [{"colors": _BOUND_COLOR, "linewidths": 1.3 * s}] + [
+            {"colors": _CONSTRAINT_COLOR, "linewidths": 1.4 * s, "linestyles": (0, (5, 3))} for _ in static.boxes
+        ]
+        for (box_lo, box_hi), style in zip([(static.fail_lo, static.fail_hi), *static.boxes], styles, strict=True):
+            edges = self._box_edges(
+                np.where(np.isfinite(box_lo), box_lo, lo), np.where(np.isfinite(box_hi), box_hi, hi)
             )
-        )
-        for box_lo, box_hi in static.boxes:
-            box_lo = np.where(np.isfinite(box_lo), box_lo, lo)
-            box_hi = np.where(np.isfinite(box_hi), box_hi, hi)
-            add(
-                ax.add_collection3d(
-                    self._Line3DCollection(
-                        self._box_edges(box_lo, box_hi),
-                        colors=_CONSTRAINT_COLOR,
-                        linewidths=1.4 * s,
-                        linestyles=(0, (5, 3)),
-                    ),
-                    autolim=False,
-                )
-            )
+            scene.static_artists.append(ax.add_collection3d(self._Line3DCollection(edges, **style), autolim=False))
         if static.ref is not None:
             ref = np.nan_to_num(static.ref)
             scene.static_artists += ax.plot(ref[:, 0], ref[:, 1], ref[:, 2], "--", color="black", lw=1.1 * s)
@@ -659,17 +642,6 @@ VIEWS = tuple(_VIEW_FACTORIES)
 """The views a ``System.view`` may name."""
 _SCENES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 _SCENES_LOCK = threading.Lock()
-
-
-@dataclass(frozen=True)
-class _Defaults:
-    """Numbers of ``env.default_params`` the renderer needs, pulled once per env."""
-
-    goal: np.ndarray
-    state_low: np.ndarray
-    state_high: np.ndarray
-    pole_half_length: float
-    constraints: tuple
 
 
 def _env_cache(env) -> dict:
