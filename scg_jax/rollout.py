@@ -35,8 +35,9 @@ def initial_reset_keys(key, num_envs: int):
     return jax.random.split(jax.random.split(key)[0], num_envs)
 
 
-def _select(done, fresh, current):
-    """``where(done, fresh, current)`` leafwise, ``done`` (batch...) broadcast over each leaf's trailing axes."""
+def select_where(done, fresh, current):
+    """``where(done, fresh, current)`` leafwise over two pytrees, ``done`` (batch...) broadcast over each leaf's
+    trailing axes."""
     done = jnp.asarray(done, bool)
 
     def select(new, old):
@@ -66,7 +67,7 @@ def restart_done(done, episode_keys, current, reset: Callable[[Any], Any], skip_
         fresh = jax.lax.cond(jnp.any(done), reset, lambda _: current, keys)
     else:
         fresh = reset(keys)
-    return _select(done, fresh, current)
+    return select_where(done, fresh, current)
 
 
 def auto_reset_step(env: Env, state: EnvState, action, params: EnvParams, adversary=None) -> StepOutput:

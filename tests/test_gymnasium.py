@@ -205,7 +205,7 @@ def test_truncated_exactly_at_the_time_limit():
         assert terminated is False
         assert truncated is (k == num_steps)
         np.testing.assert_allclose(obs, goal, atol=1e-5)
-        assert reward == pytest.approx(0.0, abs=1e-8)
+        assert reward == pytest.approx(1.0, abs=1e-7)  # exp(-c) at c = 0: the default exponential reward
     assert info["step"] == num_steps == 50
 
 

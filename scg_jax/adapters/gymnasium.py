@@ -52,6 +52,7 @@ Conventions:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import threading
 from collections import OrderedDict
@@ -68,7 +69,7 @@ from gymnasium.vector.utils import batch_space
 
 from scg_jax.config import Config, EnvConfig, load_config, make_from_config
 from scg_jax.env import Env, EnvParams, EnvState, make
-from scg_jax.rollout import initial_reset_keys, next_reset_key, restart_done
+from scg_jax.rollout import initial_reset_keys, next_reset_key, restart_done, select_where
 
 DEFAULT_ACTION_MODE = "normalized"
 # A positive per-step reward, so that termination (falling over, leaving the bounds) costs the return of the
@@ -184,11 +185,6 @@ def _physics_dict(physics) -> dict:
     return {field.name: getattr(physics, field.name) for field in dataclasses.fields(physics)}
 
 
-def _select(mask, new, old):
-    """``where(mask, new, old)`` with ``mask`` (N,) broadcast over the trailing axes."""
-    return jnp.where(mask.reshape(mask.shape + (1,) * (jnp.ndim(new) - 1)), new, old)
-
-
 # ============================================================================================== compiled
 class _Compiled:
     """One functional env, its default params and its jitted single and batched functions.
@@ -212,11 +208,7 @@ class _Compiled:
         self.next_reset_key = jax.jit(lambda packed: next_reset_key(self.state_packer.unpack(packed).key))
         self.vector_reset = jax.jit(jax.vmap(self._reset))
         self.vector_reset_masked = jax.jit(self._vector_reset_masked)
-        self.vector_steps = {
-            AutoresetMode.NEXT_STEP: jax.jit(self._vector_step_next),
-            AutoresetMode.SAME_STEP: jax.jit(self._vector_step_same),
-            AutoresetMode.DISABLED: jax.jit(self._vector_step_disabled),
-        }
+        self.vector_steps = {mode: jax.jit(functools.partial(self._vector_step, mode)) for mode in AutoresetMode}
         self.vector_next_reset_key = jax.jit(jax.vmap(next_reset_key))
         self._lock = threading.Lock()
         self._model = None
@@ -250,44 +242,34 @@ class _Compiled:
     # --------------------------------------------------------------------------------------- batched
     def _vector_reset_masked(self, keys, mask, state):
         fresh, host = jax.vmap(self._reset)(keys)
-        return jax.tree.map(lambda new, old: _select(mask, new, old), fresh, state), host
+        return select_where(mask, fresh, state), host
 
-    def _batched_step(self, state, action):
+    def _vector_step(self, mode: AutoresetMode, state, prev_done, action):
+        """One batched step; finished copies restart by ``scg_jax.rollout.restart_done`` (the suite's one
+        auto-reset), per ``mode``:
+
+        - NEXT_STEP: copies done at the previous step start a new episode instead of stepping (reward 0,
+          terminated and truncated False, info zeros);
+        - SAME_STEP: a finished copy restarts in the same call (as ``auto_reset_step``); the observation of the
+          finished step is ``info["final_obs"]``; reward, flags and info describe the finished step;
+        - DISABLED: no automatic reset; reset finished copies with ``reset(options={"reset_mask": done})``.
+        """
         out = jax.vmap(self.env.step, in_axes=(0, 0, None))(state, action, self.params)
-        return out, {**out.info, "cost": out.cost}
-
-    def _reset_where(self, done, state_keys, obs, state):
-        """Fresh episodes where ``done``: ``scg_jax.rollout.restart_done``, the suite's one auto-reset."""
-        reset = jax.vmap(self.env.reset, in_axes=(0, None))
-        return restart_done(done, state_keys, (obs, state), lambda keys: reset(keys, self.params), True)
-
-    def _vector_step_next(self, state, prev_done, action):
-        """NEXT_STEP: copies done at the previous step start a new episode instead of stepping (reward 0,
-        terminated and truncated False, info zeros)."""
-        out, info = self._batched_step(state, action)
-        obs, next_state = self._reset_where(prev_done, state.key, out.obs, out.state)
-        keep = ~prev_done
-        terminated, truncated = out.terminated & keep, out.truncated & keep
-        reward = jnp.where(keep, out.reward, jnp.zeros_like(out.reward))
-        info = jax.tree.map(lambda v: _select(keep, v, jnp.zeros_like(v)), info)
-        host = (obs.astype(jnp.float32), reward, terminated, truncated, info)
-        return next_state, terminated | truncated, host
-
-    def _vector_step_same(self, state, prev_done, action):
-        """SAME_STEP: a finished copy restarts in the same call (``auto_reset_step``); the observation of the
-        finished step is ``info["final_obs"]``; reward, flags and info describe the finished step."""
-        out, info = self._batched_step(state, action)
-        done = out.terminated | out.truncated
-        obs, next_state = self._reset_where(done, out.state.key, out.obs, out.state)
-        final_obs = out.obs.astype(jnp.float32)
-        host = (obs.astype(jnp.float32), out.reward, out.terminated, out.truncated, {**info, "final_obs": final_obs})
-        return next_state, done, host
-
-    def _vector_step_disabled(self, state, prev_done, action):
-        """DISABLED: no automatic reset; reset finished copies with ``reset(options={"reset_mask": done})``."""
-        out, info = self._batched_step(state, action)
-        done = out.terminated | out.truncated
-        return out.state, done, (out.obs.astype(jnp.float32), out.reward, out.terminated, out.truncated, info)
+        obs, next_state, reward, terminated, truncated = out.obs, out.state, out.reward, out.terminated, out.truncated
+        info = {**out.info, "cost": out.cost}
+        if mode != AutoresetMode.DISABLED:
+            reset = jax.vmap(self.env.reset, in_axes=(0, None))
+            # The key is the same before and after the step (EnvState.key is the episode's key).
+            done = prev_done if mode == AutoresetMode.NEXT_STEP else terminated | truncated
+            obs, next_state = restart_done(done, state.key, (obs, next_state), lambda k: reset(k, self.params), True)
+        if mode == AutoresetMode.NEXT_STEP:
+            keep = ~prev_done
+            terminated, truncated = terminated & keep, truncated & keep
+            reward = jnp.where(keep, reward, jnp.zeros_like(reward))
+            info = jax.tree.map(lambda v: select_where(keep, v, jnp.zeros_like(v)), info)
+        elif mode == AutoresetMode.SAME_STEP:
+            info["final_obs"] = out.obs.astype(jnp.float32)
+        return next_state, terminated | truncated, (obs.astype(jnp.float32), reward, terminated, truncated, info)
 
 
 _CACHE: OrderedDict = OrderedDict()
