@@ -16,7 +16,11 @@ Step semantics (control step ``k -> k + 1``):
 4. the reward compares ``x_{k+1}`` with ``x_ref[k+1]`` and ``u`` with ``u_ref[k]``, the same indices for every
    system, so the rewards of an episode sum to ``-J`` of the paper less its constant ``x_0`` term;
 5. constraints are evaluated at ``(x_{k+1}, u_cmd)``; the observation of ``x_{k+1}`` gets the
-   observation-channel disturbances.
+   observation-channel disturbances (and an observation adversary's input).
+
+A non-finite state after integration (e.g. from a NaN action) ends the episode, keeps ``x_k`` and still gives a
+finite reward and cost (see ``Env.step``). ``params.replace(...)`` is unchecked; ``Env.with_physics`` and
+``Env.validate`` check values as ``make`` does.
 
 Rewards (``reward_type``), with ``c = 1/2 e^T Q e + 1/2 du^T R du``, ``e = x_{k+1} - x_ref[k+1]``,
 ``du = u - u_ref[k]``:
