@@ -366,3 +366,13 @@ def test_sac_learns_cartpole_stabilization():
     print(f"SAC: {time.time() - start:.1f} s")
     assert len(curve) == 3 and "eval/episode_cost" in metrics
     _check_learning(curve)
+
+
+def test_importing_the_adapter_prints_no_warp_message():
+    import subprocess
+    import sys
+
+    code = "import scg_jax.adapters.brax; print('imported')"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=300)
+    assert result.stdout.strip() == "imported"
+    assert "warp" not in result.stdout + result.stderr
