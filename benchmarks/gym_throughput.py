@@ -1,7 +1,8 @@
 """Throughput of the Gymnasium adapters next to the functional env, measured in the same run.
 
 Three loops over the same env (default: cart-pole stabilization, 50 Hz control / 1000 Hz physics, rk4,
-``action_mode="normalized"``, a constant action of 0, i.e. no force, so poles fall and episodes end):
+``action_mode="normalized"`` and ``reward_type="exponential"`` (the ids' defaults), a constant action of 0,
+i.e. no force, so poles fall and episodes end):
 
 - **vector**: ``gymnasium.make_vec(id, num_envs=N)`` (``ScgVectorEnv``, NEXT_STEP autoreset) stepped from a
   Python loop with a constant numpy action array, as a user would; each ``step`` is one jitted call for all

@@ -16,7 +16,11 @@ Step semantics (control step ``k -> k + 1``):
 4. the reward compares ``x_{k+1}`` with ``x_ref[k+1]`` and ``u`` with ``u_ref[k]``, the same indices for every
    system, so the rewards of an episode sum to ``-J`` of the paper less its constant ``x_0`` term;
 5. constraints are evaluated at ``(x_{k+1}, u_cmd)``; the observation of ``x_{k+1}`` gets the
-   observation-channel disturbances.
+   observation-channel disturbances (and an observation adversary's input).
+
+A non-finite state after integration (e.g. from a NaN action) ends the episode, keeps ``x_k`` and still gives a
+finite reward and cost (see ``Env.step``). ``params.replace(...)`` is unchecked; ``Env.with_physics`` and
+``Env.validate`` check values as ``make`` does.
 
 Rewards (``reward_type``), with ``c = 1/2 e^T Q e + 1/2 du^T R du``, ``e = x_{k+1} - x_ref[k+1]``,
 ``du = u - u_ref[k]``:
@@ -285,6 +289,84 @@ class Env:
             adversary_scale=as_array(d["adversary_scale"]),
         )
 
+    def with_physics(self, params: EnvParams, **fields) -> EnvParams:
+        """``params`` with the named physical parameters replaced, checked as ``make`` checks them.
+
+        ``params.replace(physics=params.physics.replace(...))`` is the raw, unchecked path (it must stay
+        traceable); this is the checked one: unknown names and non-physical values (a negative mass, a minimum
+        thrust above the maximum, ...) raise a ``ValueError`` naming the field. Values may be scalars or arrays
+        (a sweep over copies); they must be concrete (call it outside ``jit``).
+
+        Example: ``params = env.with_physics(env.default_params, pole_half_length=0.6)``.
+        """
+        allowed = [f.name for f in dataclasses.fields(params.physics)]
+        for name in fields:
+            if name not in allowed:
+                raise ValueError(
+                    f"physics.{name}: unknown parameter of {self.system.name}; allowed are {', '.join(allowed)}"
+                )
+        dtype = jnp.zeros(()).dtype
+        physics = params.physics.replace(**{name: jnp.asarray(value, dtype) for name, value in fields.items()})
+        return self.validate(params.replace(physics=physics))
+
+    def validate(self, params: EnvParams) -> EnvParams:
+        """Check ``params`` (made by ``default_params`` and changed with raw ``replace``) and return it.
+
+        Checks, each failing with a ``ValueError`` that names the field: the pytree structure and every leaf's
+        trailing shape against ``default_params`` (extra leading axes are allowed: a batched sweep), physical
+        parameters (``System.validate_params``, as ``make``), ``Q`` and ``R`` symmetric positive semidefinite,
+        finite ``goal``, ``state_low`` <= ``state_high``, ``goal_tolerance`` > 0, ``mse_weight`` >= 0,
+        ``violation_penalty`` >= 0, ``trajectory.num_cycles`` > 0 and a finite ``adversary_scale``. Values must be
+        concrete (outside ``jit``). Raw ``params.replace(...)`` is never checked.
+        """
+        reference = self.default_params
+        if jax.tree.structure(params) != jax.tree.structure(reference):
+            raise ValueError(
+                f"params: structure differs from env.default_params of this {self.system.name} env; build params "
+                "from env.default_params and change values with replace or with_physics"
+            )
+        for (path, leaf), ref in zip(
+            jax.tree_util.tree_leaves_with_path(params), jax.tree.leaves(reference), strict=True
+        ):
+            name = jax.tree_util.keystr(path).lstrip(".")
+            if isinstance(leaf, jax.core.Tracer):
+                raise ValueError(f"params.{name}: validate needs concrete values; call it outside jit")
+            shape, ref_shape = jnp.shape(leaf), jnp.shape(ref)
+            if shape[len(shape) - len(ref_shape) :] != ref_shape or len(shape) < len(ref_shape):
+                raise ValueError(
+                    f"params.{name}: expected shape {ref_shape} (with optional leading batch axes), got {shape}"
+                )
+        self.system.validate_params(params.physics)
+
+        def check(name, ok, requirement, value):
+            if not bool(np.all(ok)):
+                raise ValueError(f"params.{name}: must be {requirement}, got {np.asarray(value).tolist()!r}")
+
+        for name in ("Q", "R"):
+            matrix = np.asarray(getattr(params, name), dtype=float)
+            symmetric = np.allclose(matrix, np.swapaxes(matrix, -1, -2))
+            check(
+                name,
+                symmetric and np.linalg.eigvalsh(matrix).min() >= -1e-12,
+                "symmetric positive semidefinite",
+                matrix,
+            )
+        goal = np.asarray(params.goal)
+        check("goal", np.isfinite(goal), "finite", goal)
+        low, high = np.asarray(params.state_low), np.asarray(params.state_high)
+        check("state_low", low <= high, "<= state_high", low)
+        tolerance = np.asarray(params.goal_tolerance)
+        check("goal_tolerance", tolerance > 0, "positive", tolerance)
+        weight = np.asarray(params.mse_weight)
+        check("mse_weight", np.isfinite(weight) & (weight >= 0), "finite and non-negative", weight)
+        penalty = np.asarray(params.violation_penalty)
+        check("violation_penalty", np.isfinite(penalty) & (penalty >= 0), "finite and non-negative", penalty)
+        cycles = np.asarray(params.trajectory.num_cycles)
+        check("trajectory.num_cycles", np.isfinite(cycles) & (cycles > 0), "positive", cycles)
+        scale = np.asarray(params.adversary_scale)
+        check("adversary_scale", np.isfinite(scale), "finite", scale)
+        return params
+
     def channel_dim(self, channel: str) -> int:
         """Dimension of a disturbance channel: nu (action), nx (observation), f_ext_dim (dynamics)."""
         return {"action": self.nu, "observation": self.nx, "dynamics": self.system.f_ext_dim}[channel]
@@ -375,11 +457,15 @@ class Env:
             params.goal.dtype,
         )
 
-    def _noisy_observation(self, state: EnvState, params: EnvParams, noise: dict):
+    def _noisy_observation(self, state: EnvState, params: EnvParams, noise: dict, adversary=None):
+        """``observe`` plus the observation-channel disturbances and the observation adversary's ``adversary``
+        (nx,), both on the state part only (the appended reference points are exact)."""
         obs = self.observe(state, params)
-        if not self.disturbance_specs.get("observation"):
-            return obs
-        return obs.at[: self.nx].add(self._disturb("observation", state, params, noise, state.step))
+        if self.disturbance_specs.get("observation"):
+            obs = obs.at[: self.nx].add(self._disturb("observation", state, params, noise, state.step))
+        if adversary is not None:
+            obs = obs.at[: self.nx].add(adversary)
+        return obs
 
     def reset(self, key, params: EnvParams):
         """Start an episode: draw the initial state, the plant's randomised parameters and the per-episode
@@ -409,9 +495,15 @@ class Env:
         """Advance one control step.
 
         Args:
-            state: ``EnvState`` of one copy. action: (nu,) in this env's ``action_mode``. params: ``EnvParams``.
-            adversary: optional input (dim of the adversary channel,) in [-1, 1] (clipped), scaled by
-                ``params.adversary_scale`` and added to that channel; only for envs made with ``adversary``.
+            state: ``EnvState`` of one copy. action: (nu,) in this env's ``action_mode`` (an array or a list; the
+                shape is checked at trace time, so under ``jax.vmap`` it is the shape of one copy's action).
+            params: ``EnvParams``.
+            adversary: optional input (dim of the adversary channel,) in [-1, 1] (clipped to that range, by
+                definition of the adversary's action space), times ``params.adversary_scale``; only for envs
+                made with ``adversary``. It is added to that channel at this step: ``action`` to the commanded
+                input ``u_cmd`` before saturation (N), ``dynamics`` to the external force ``f_ext`` (N),
+                ``observation`` to the state part of the returned ``obs`` (of ``x_{k+1}``; the true state is
+                unaffected).
 
         Returns:
             ``StepOutput`` with ``info`` holding ``mse`` (weighted squared tracking error of ``x_{k+1}``),
@@ -420,18 +512,33 @@ class Env:
             ``step`` (k + 1), ``u_cmd`` and ``u`` (commanded and applied input, N), ``f_ext`` (the external
             force, N), ``constraint_values`` (all rows ``g``, in option order), ``constraint_violation`` (any
             row violated).
+
+            A non-finite action (NaN, or an infinite action where no saturation catches it) never gives a
+            non-finite reward or cost: the state is kept (``nonfinite`` and ``terminated`` are true), the input
+            term of ``c`` charges each non-finite entry of ``u`` as the admissible input farthest from
+            ``u_ref`` (``max(|u_low - u_ref|, |u_high - u_ref|)`` per entry, the worst admissible cost), and a
+            constraint row whose value is not finite counts as violated (``NaN <= 0`` is false), so ``cost``
+            is 1 when the env has constraints.
+
+        Raises:
+            ValueError: at trace time, when ``action`` is not of shape (nu,) or ``adversary`` not of the
+                adversary channel's shape, naming ``nu``; or when ``adversary`` is given to an env made without.
         """
         if adversary is not None and self.adversary_channel is None:
             raise ValueError(
                 "adversary: this env was made without an adversary channel; pass "
                 "adversary={'channel': ..., 'scale': ...} to make"
             )
+        action = self._checked_action(action)
         # One draw per step, from fold_in(episode key, k), serves the action and dynamics disturbances of step k
         # and the observation noise of the state it reaches: PRNG calls dominate the cost of these small systems.
         noise = self._step_noise(jax.random.fold_in(state.key, state.step), params) if self.has_step_noise else {}
         extra = {channel: 0.0 for channel in disturbances_lib.CHANNELS}
+        extra["observation"] = None
         if adversary is not None:
-            extra[self.adversary_channel] = params.adversary_scale * jnp.clip(adversary, -1.0, 1.0)
+            extra[self.adversary_channel] = params.adversary_scale * jnp.clip(
+                self._checked_adversary(adversary), -1.0, 1.0
+            )
 
         u_cmd = self.action_to_input(action, params)
         u_low, u_high = self.input_bounds(state.physics)
@@ -446,7 +553,10 @@ class Env:
         x_ref, _ = self.reference_at(step, params)
         _, u_ref = self.reference_at(state.step, params)
         error = x_next - x_ref
-        du = u - u_ref
+        # A non-finite input entry is charged as the worst admissible one, so the reward stays finite and its
+        # input term is never better than that of an admissible action.
+        worst_du = jnp.maximum(jnp.abs(u_low - u_ref), jnp.abs(u_high - u_ref))
+        du = jnp.where(jnp.isfinite(u), u - u_ref, worst_du)
         quadratic_cost = 0.5 * error @ params.Q @ error + 0.5 * du @ params.R @ du
         out_of_bounds = jnp.any((x_next < params.state_low) | (x_next > params.state_high))
         goal_reached = (
@@ -458,7 +568,9 @@ class Env:
             constraint_values = constraints_lib.evaluate_all(
                 self.constraint_specs, params.constraints, x_next, u_cmd, jax_backend
             )
-            violation = jnp.any(constraints_lib.violated(self.constraint_specs, params.constraints, constraint_values))
+            rows = constraints_lib.violated(self.constraint_specs, params.constraints, constraint_values)
+            # g <= 0 is satisfied; a NaN row (e.g. from a NaN action) is not, so it counts as violated.
+            violation = jnp.any(rows | ~jnp.isfinite(constraint_values))
         else:
             constraint_values = jnp.zeros(0, x_next.dtype)
             violation = jnp.zeros((), bool)
@@ -496,7 +608,7 @@ class Env:
             "constraint_violation": violation,
         }
         return StepOutput(
-            obs=self._noisy_observation(next_state, params, noise),
+            obs=self._noisy_observation(next_state, params, noise, adversary=extra["observation"]),
             state=next_state,
             reward=reward,
             cost=cost,
@@ -504,6 +616,25 @@ class Env:
             truncated=truncated,
             info=info,
         )
+
+    def _checked_action(self, action):
+        """``action`` as an array of shape (nu,); shapes are static, so this check costs nothing inside ``jit``."""
+        shape = np.shape(action)
+        if shape != (self.nu,):
+            raise ValueError(
+                f"action: expected shape ({self.nu},) (nu = {self.nu}: {', '.join(self.system.input_names)} of "
+                f"{self.system.name}), got shape {shape}; under jax.vmap this is the shape of one copy's action"
+            )
+        return jnp.asarray(action)
+
+    def _checked_adversary(self, adversary):
+        dim = self.channel_dim(self.adversary_channel)
+        shape = np.shape(adversary)
+        if shape != (dim,):
+            raise ValueError(
+                f"adversary: expected shape ({dim},) for the {self.adversary_channel!r} channel, got shape {shape}"
+            )
+        return jnp.asarray(adversary)
 
     # ----------------------------------------------------------------------------------------- symbolic
     def symbolic_model(self, params: EnvParams, discretization: str = "env"):

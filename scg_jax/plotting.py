@@ -35,6 +35,25 @@ from scg_jax.files import write_atomic
 from scg_jax.metrics import episode_lengths
 
 
+def plane_indices(env) -> tuple[str, tuple[int, int]] | None:
+    """The plane a path plot shows and the state indices of its two position coordinates, or ``None``.
+
+    Derived from the system's record: systems whose position has fewer than two world axes
+    (``System.path_plane is None``: the cart-pole, the 1D quadrotor) have no path plot. The plane is the env's
+    trajectory plane when the system has both of its axes (a 2D quadrotor asked for ``xy`` falls back to its own
+    ``default_plane``), else the system's ``path_plane``.
+    """
+    system = env.system
+    if system.path_plane is None:
+        return None
+    position_index = {axis: pos for axis, pos, _ in system.tracking_axes}
+    plane = getattr(env, "trajectory_plane", None) or system.path_plane
+    if not all("xyz".index(letter) in position_index for letter in plane):
+        plane = system.path_plane
+    first, second = ("xyz".index(letter) for letter in plane)
+    return plane, (position_index[first], position_index[second])
+
+
 def _load(data) -> dict:
     if isinstance(data, Mapping):
         return dict(data)

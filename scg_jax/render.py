@@ -33,9 +33,7 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 import threading
-import warnings
 import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -48,11 +46,10 @@ from matplotlib.colors import to_rgba
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from scg_jax.files import write_atomic
+from scg_jax.video import MAX_GIF_FPS, SUFFIXES, write_gif, write_mp4
 
-__all__ = ["DRAWN_ARM", "SUFFIXES", "animate", "animate_rollout_file", "animation_frames", "render_frame"]
+__all__ = ["DRAWN_ARM", "SUFFIXES", "VIEWS", "animate", "animate_rollout_file", "animation_frames", "render_frame"]
 
-SUFFIXES = (".gif", ".mp4")
 DRAWN_ARM = 0.15  # m: drawn quadrotor arm (centre to motor); the real one is 0.0397 m
 DRAWN_ROTOR = 0.06  # m: drawn rotor radius
 CART_WIDTH, CART_HEIGHT = 0.5, 0.3  # m
@@ -65,8 +62,6 @@ _BOUND_COLOR = "#c00000"
 _CONSTRAINT_COLOR = "#ff8c00"
 _ENDED_COLOR = "#a0a0a0"
 _DPI = 100
-_MAX_GIF_FPS = 50  # GIF frame delays are in 1/100 s and viewers slow down delays under 20 ms
-_UNCHANGED = 255  # GIF palette index of "same as the previous frame" (transparent)
 
 
 # --------------------------------------------------------------------------------------------- scene data
@@ -105,6 +100,19 @@ class _Frame:
 def _darker(color, factor: float = 0.55):
     r, g, b, a = to_rgba(color)
     return (r * factor, g * factor, b * factor, a)
+
+
+# Every colour the views draw with: the GIF writer keeps them (and their blends over white) exact.
+_KEY_COLORS = (
+    *_COPY_COLORS,
+    *(_darker(c) for c in _COPY_COLORS),
+    *(_darker(c, 0.75) for c in _COPY_COLORS),
+    _FRONT_COLOR,
+    _BOUND_COLOR,
+    _CONSTRAINT_COLOR,
+    _ENDED_COLOR,
+    "black",
+)
 
 
 def _with_alpha(color, alpha: float):
@@ -173,12 +181,17 @@ def _constraint_boxes(system, specs, constraint_params) -> tuple:
 
 # --------------------------------------------------------------------------------------------- scenes
 class _Scene:
-    """A cached figure for one system and size: a background of static artists and animated moving ones."""
+    """A cached figure for one view and size: a background of static artists, and the moving ones drawn on it.
 
-    def __init__(self, system, width: int, height: int):
-        self.system = system
+    The figure, the title and time labels and the background cache live here; what is drawn is the ``view``'s
+    (``_PlanarView`` with a body, or ``_Quadrotor3DView``), which implements ``build(scene)``,
+    ``draw_static(scene, static)``, ``update(scene, frame)`` and ``draw_artist(fig, artist)``.
+    """
+
+    def __init__(self, view, width: int, height: int):
+        self.view = view
         self.width, self.height = width, height
-        self.scale = min(width, height) / 480.0
+        self.scale = s = min(width, height) / 480.0
         # A hair over the size so the Agg buffer's int() truncation never loses a pixel row or column.
         self.fig = Figure(figsize=((width + 0.01) / _DPI, (height + 0.01) / _DPI), dpi=_DPI, facecolor="white")
         self.canvas = FigureCanvasAgg(self.fig)
@@ -187,21 +200,13 @@ class _Scene:
         self.background = None
         self.static_artists: list = []
         self.dynamic: list = []
-        s = self.scale
         self.title = self.fig.text(0.5, 1 - 6 * s / height, "", ha="center", va="top", fontsize=9 * s)
         self.text = self.fig.text(
-            8 * s / width,
-            1 - 6 * s / height,
-            "",
-            ha="left",
-            va="top",
-            fontsize=8 * s,
-            animated=True,
+            8 * s / width, 1 - 6 * s / height, "", ha="left", va="top", fontsize=8 * s, animated=True,
             family="monospace",
-        )
-        self._build()
+        )  # fmt: skip
+        view.build(self)
 
-    # subclasses: _build (axes and dynamic artists), _draw_static, _update
     def render(self, static: _Static, frame: _Frame) -> np.ndarray:
         with self.lock:
             key = static.key()
@@ -210,228 +215,257 @@ class _Scene:
                     artist.remove()
                 self.static_artists = []
                 self.title.set_text(static.title)
-                self._draw_static(static)
+                self.view.draw_static(self, static)
                 self.canvas.draw()
                 self.background = self.canvas.copy_from_bbox(self.fig.bbox)
                 self.static_key = key
             self.canvas.restore_region(self.background)
-            self._update(frame)
+            self.view.update(self, frame)
             self.text.set_text(frame.text)
             for artist in self.dynamic:
-                self._draw_artist(artist)
+                self.view.draw_artist(self.fig, artist)
             self.fig.draw_artist(self.text)
             buffer = np.asarray(self.canvas.buffer_rgba())
             return np.array(buffer[: self.height, : self.width, :3])
 
-    def _draw_artist(self, artist) -> None:
-        self.fig.draw_artist(artist)
 
-    def _trail_points(self, frame: _Frame, i: int) -> np.ndarray:
-        """(K, 2 or 3) points of copy i's trail."""
-        raise NotImplementedError
+# ------------------------------------------------------------------------------------------ planar view
+def _bound_segments(lo, hi, xlim, zlim) -> list:
+    """Segments of the finite x and z bounds of a box, each spanning the other axis's bounds (or the view)."""
+
+    def span(a, b, limits):
+        return (a if np.isfinite(a) else limits[0] - 1, b if np.isfinite(b) else limits[1] + 1)
+
+    segments = []
+    z_span, x_span = span(lo[2], hi[2], zlim), span(lo[0], hi[0], xlim)
+    segments += [[(v, z_span[0]), (v, z_span[1])] for v in (lo[0], hi[0]) if np.isfinite(v)]
+    segments += [[(x_span[0], v), (x_span[1], v)] for v in (lo[2], hi[2]) if np.isfinite(v)]
+    return segments
 
 
-class _PlanarScene(_Scene):
-    """Side view: world x to the right, world z (the cart-pole's drawing height) up."""
+def _planar_limits(static: _Static) -> tuple[tuple[float, float], tuple[float, float]]:
+    """World x and z ranges that hold the failure bounds, the constraint boxes and the reference, padded."""
+    xs = [static.fail_lo[0], static.fail_hi[0]]
+    zs = [static.fail_lo[2], static.fail_hi[2]]
+    for lo, hi in static.boxes:
+        xs += [lo[0], hi[0]]
+        zs += [lo[2], hi[2]]
+    if static.ref is not None:
+        xs += [_nanmin(static.ref[:, 0]), _nanmax(static.ref[:, 0])]
+        zs += [_nanmin(static.ref[:, 2]), _nanmax(static.ref[:, 2])]
+    xs = [v for v in xs if np.isfinite(v) and abs(v) < 50]  # ignore missing axes and far-off bounds
+    zs = [v for v in zs if np.isfinite(v) and abs(v) < 50]
+    pad = 0.2
+    return (min(xs, default=-1.0) - pad, max(xs, default=1.0) + pad), (
+        min(zs, default=0.0) - pad,
+        max(zs, default=2.0) + pad,
+    )
 
-    below = 0.5  # share of the vertical room added for equal scaling that goes under the content
 
-    def _build(self) -> None:
-        s, w, h = self.scale, self.width, self.height
+def _ground(ax, static: _Static, xlim, zlim, s) -> list:
+    """The floor under the lower z failure bound, if there is one."""
+    if not np.isfinite(static.fail_lo[2]):
+        return []
+    return [ax.fill_between(xlim, zlim[0], static.fail_lo[2], color="#e8e4dc", zorder=0, lw=0)]
+
+
+def _path_and_goal(ax, static: _Static, s) -> list:
+    """The reference path (dashed) and the stabilization goal (a cross) in the x-z plane."""
+    artists = []
+    if static.ref is not None:
+        artists += ax.plot(static.ref[:, 0], static.ref[:, 2], "--", color="black", lw=1.1 * s)
+    if static.goal is not None:
+        artists += ax.plot([static.goal[0]], [static.goal[2]], "x", color="black", ms=9 * s, mew=2 * s, zorder=3)
+    return artists
+
+
+class _PlanarView:
+    """Side view, world x to the right and world z up, with equal scale; the moving bodies are the ``body``'s.
+
+    A body (``_CartPoleBody``, ``_PlanarQuadrotorBody``) provides ``below`` (share of the vertical room added
+    for equal scaling that goes under the content), ``hide_ticks`` (``"left"``, ``"bottom"`` or None),
+    ``limits(static)``, ``ground(ax, static, xlim, zlim, s)``, ``reference(ax, static, s)``,
+    ``shapes(frame, s) -> (segments, colors, widths, boxes, faces, edges)``, ``trail(frame, i) -> (K, 2)`` and
+    ``ref_marker(frame, ref) -> (xs, zs)``.
+    """
+
+    def __init__(self, body):
+        self.body = body
+
+    def build(self, scene: _Scene) -> None:
+        s, w, h = scene.scale, scene.width, scene.height
         left, bottom, right, top = 40 * s, 26 * s, 10 * s, 24 * s
-        self.ax = self.fig.add_axes((left / w, bottom / h, 1 - (left + right) / w, 1 - (bottom + top) / h))
+        self.ax = ax = scene.fig.add_axes((left / w, bottom / h, 1 - (left + right) / w, 1 - (bottom + top) / h))
         self.box_ratio = (w - left - right) / (h - bottom - top)  # width / height of the axes in pixels
-        self.ax.tick_params(labelsize=7 * s, length=3 * s, pad=2 * s)
-        self.ax.grid(alpha=0.25, lw=0.6 * s)
-        self.ax.set_axisbelow(True)
+        ax.tick_params(labelsize=7 * s, length=3 * s, pad=2 * s)
+        if self.body.hide_ticks == "left":  # the cart-pole's drawing height is not a coordinate of the model
+            ax.tick_params(left=False, labelleft=False)
+        elif self.body.hide_ticks == "bottom":  # the 1D quadrotor has no x
+            ax.tick_params(bottom=False, labelbottom=False)
+        ax.grid(alpha=0.25, lw=0.6 * s)
+        ax.set_axisbelow(True)
         self.trails = LineCollection([], animated=True, linewidths=1.0 * s)
         self.bodies = LineCollection([], animated=True, capstyle="round")
         self.boxes = PolyCollection([], animated=True)
-        self.ref_marker = self.ax.plot([], [], "o", ms=6 * s, mfc="none", mec="black", mew=1.2 * s, animated=True)[0]
+        self.ref_marker = ax.plot([], [], "o", ms=6 * s, mfc="none", mec="black", mew=1.2 * s, animated=True)[0]
         for artist in (self.trails, self.boxes, self.bodies):
-            self.ax.add_collection(artist, autolim=False)
-        self.dynamic = [self.trails, self.boxes, self.bodies, self.ref_marker]
+            ax.add_collection(artist, autolim=False)
+        scene.dynamic = [self.trails, self.boxes, self.bodies, self.ref_marker]
 
-    def _limits(self, static: _Static) -> tuple[tuple[float, float], tuple[float, float]]:
-        xs = [static.fail_lo[0], static.fail_hi[0]]
-        zs = [static.fail_lo[2], static.fail_hi[2]]
-        for lo, hi in static.boxes:
-            xs += [lo[0], hi[0]]
-            zs += [lo[2], hi[2]]
-        if static.ref is not None:
-            xs += [_nanmin(static.ref[:, 0]), _nanmax(static.ref[:, 0])]
-            zs += [_nanmin(static.ref[:, 2]), _nanmax(static.ref[:, 2])]
-        xs = [v for v in xs if np.isfinite(v) and abs(v) < 50]  # ignore missing axes and far-off bounds
-        zs = [v for v in zs if np.isfinite(v) and abs(v) < 50]
-        x_lo, x_hi = (min(xs, default=-1.0), max(xs, default=1.0))
-        z_lo, z_hi = (min(zs, default=0.0), max(zs, default=2.0))
-        pad = 0.2
-        return (x_lo - pad, x_hi + pad), (z_lo - pad, z_hi + pad)
-
-    def _draw_static(self, static: _Static) -> None:
-        ax, s = self.ax, self.scale
-        (x0, x1), (z0, z1) = self._limits(static)
+    def draw_static(self, scene: _Scene, static: _Static) -> None:
+        ax, s = self.ax, scene.scale
+        (x0, x1), (z0, z1) = self.body.limits(static)
         # Equal scale on both axes: widen whichever range is short for the axes' pixel aspect.
         if (x1 - x0) / (z1 - z0) < self.box_ratio:
             extra = (z1 - z0) * self.box_ratio - (x1 - x0)
             x0, x1 = x0 - 0.5 * extra, x1 + 0.5 * extra
         else:
             extra = (x1 - x0) / self.box_ratio - (z1 - z0)
-            z0, z1 = z0 - self.below * extra, z1 + (1 - self.below) * extra
+            z0, z1 = z0 - self.body.below * extra, z1 + (1 - self.body.below) * extra
         ax.set_xlim(x0, x1)
         ax.set_ylim(z0, z1)
-        add = self.static_artists.extend
-        self._draw_ground(static, (x0, x1), (z0, z1))
-        # Failure bounds (solid red) and constraint boundaries (dashed orange): a line per finite bound, spanning
-        # the other axis's bounds (or the view), which together draw a box.
-        segments = self._bound_segments(static.fail_lo, static.fail_hi, (x0, x1), (z0, z1))
+        add = scene.static_artists.extend
+        add(self.body.ground(ax, static, (x0, x1), (z0, z1), s))
+        # Failure bounds (solid red) and constraint boundaries (dashed orange): a line per finite bound.
+        segments = _bound_segments(static.fail_lo, static.fail_hi, (x0, x1), (z0, z1))
         add([ax.add_collection(LineCollection(segments, colors=_BOUND_COLOR, linewidths=1.6 * s, zorder=2))])
         for lo, hi in static.boxes:
-            segments = self._bound_segments(lo, hi, (x0, x1), (z0, z1))
-            add(
-                [
-                    ax.add_collection(
-                        LineCollection(
-                            segments, colors=_CONSTRAINT_COLOR, linewidths=1.6 * s, linestyles=(0, (5, 3)), zorder=2
-                        )
-                    )
-                ]
-            )
-        self._draw_reference(static)
+            dashed = LineCollection(
+                _bound_segments(lo, hi, (x0, x1), (z0, z1)), colors=_CONSTRAINT_COLOR, linewidths=1.6 * s,
+                linestyles=(0, (5, 3)), zorder=2,
+            )  # fmt: skip
+            add([ax.add_collection(dashed)])
+        add(self.body.reference(ax, static, s))
 
-    def _draw_ground(self, static, xlim, zlim) -> None:
-        if np.isfinite(static.fail_lo[2]):
-            self.static_artists.append(
-                self.ax.fill_between(xlim, zlim[0], static.fail_lo[2], color="#e8e4dc", zorder=0, lw=0)
-            )
-
-    def _draw_reference(self, static: _Static) -> None:
-        ax, s = self.ax, self.scale
-        if static.ref is not None:
-            self.static_artists += ax.plot(static.ref[:, 0], static.ref[:, 2], "--", color="black", lw=1.1 * s)
-        if static.goal is not None:
-            self.static_artists += ax.plot(
-                [static.goal[0]], [static.goal[2]], "x", color="black", ms=9 * s, mew=2 * s, zorder=3
-            )
-
-    @staticmethod
-    def _bound_segments(lo, hi, xlim, zlim) -> list:
-        def span(a, b, limits):
-            return (a if np.isfinite(a) else limits[0] - 1, b if np.isfinite(b) else limits[1] + 1)
-
-        segments = []
-        z_span = span(lo[2], hi[2], zlim)
-        x_span = span(lo[0], hi[0], xlim)
-        for value in (lo[0], hi[0]):
-            if np.isfinite(value):
-                segments.append([(value, z_span[0]), (value, z_span[1])])
-        for value in (lo[2], hi[2]):
-            if np.isfinite(value):
-                segments.append([(x_span[0], value), (x_span[1], value)])
-        return segments
-
-    def _set_trails(self, frame: _Frame) -> None:
-        segments, colors = [], []
+    def update(self, scene: _Scene, frame: _Frame) -> None:
+        segments, colors, widths, boxes, faces, edges = self.body.shapes(frame, scene.scale)
+        self.bodies.set_segments(segments)
+        self.bodies.set_colors(colors)
+        self.bodies.set_linewidths(widths)
+        self.boxes.set_verts(boxes)
+        if boxes:
+            self.boxes.set_facecolors(faces)
+            self.boxes.set_edgecolors(edges)
+            self.boxes.set_linewidths(1.0 * scene.scale)
+        trails, trail_colors = [], []
         if frame.trails is not None:
             for i, color in enumerate(frame.colors):
-                points = self._trail_points(frame, i)
+                points = self.body.trail(frame, i)
                 if len(points) > 1:
-                    segments.append(points)
-                    colors.append(_with_alpha(color, 0.45))
-        self.trails.set_segments(segments)
-        self.trails.set_colors(colors)
-
-    def _set_ref_marker(self, frame: _Frame, point) -> None:
-        if point is None:
+                    trails.append(points)
+                    trail_colors.append(_with_alpha(color, 0.45))
+        self.trails.set_segments(trails)
+        self.trails.set_colors(trail_colors)
+        if frame.ref_point is None:
             self.ref_marker.set_data([], [])
         else:
-            self.ref_marker.set_data([point[0]], [point[1]])
-
-
-class _CartPoleScene(_PlanarScene):
-    below = 0.25
-
-    def _build(self) -> None:
-        super()._build()
-        self.ax.tick_params(left=False, labelleft=False)  # the drawing height is not a coordinate of the model
-
-    def _limits(self, static):
-        (x0, x1), _ = super()._limits(static)
-        return (min(x0, -1.0), max(x1, 1.0)), (_CART_REF_Y - 0.25, 0.5 * CART_HEIGHT + 2 * static.reach + 0.2)
-
-    def _draw_ground(self, static, xlim, zlim) -> None:
-        s = self.scale
-        self.static_artists += self.ax.plot(xlim, [_CART_RAIL] * 2, color="#606060", lw=2.5 * s, zorder=1)
-
-    def _draw_reference(self, static):
-        ax, s = self.ax, self.scale
-        if static.ref is not None:
-            self.static_artists += ax.plot(
-                [_nanmin(static.ref[:, 0]), _nanmax(static.ref[:, 0])], [_CART_REF_Y] * 2, "--", color="black",
-                lw=1.1 * s,
-            )  # fmt: skip
-        if static.goal is not None:
-            self.static_artists += ax.plot([static.goal[0]], [_CART_REF_Y], "^", color="black", ms=7 * s, zorder=3)
+            self.ref_marker.set_data(*self.body.ref_marker(frame, frame.ref_point))
 
     @staticmethod
-    def _geometry(state, half_length):
-        x, theta = state[0], state[2]
-        hinge = np.array([x, 0.5 * CART_HEIGHT])
-        tip = hinge + 2 * half_length * np.array([np.sin(theta), np.cos(theta)])
-        return hinge, tip
+    def draw_artist(fig, artist) -> None:
+        fig.draw_artist(artist)
 
-    def _trail_points(self, frame, i):
-        trail = frame.trails[i]
-        length = frame.pole_half_length[i]
-        return np.stack(
-            [trail[:, 0] + 2 * length * np.sin(trail[:, 2]), 0.5 * CART_HEIGHT + 2 * length * np.cos(trail[:, 2])],
-            axis=-1,
-        )
 
-    def _update(self, frame: _Frame) -> None:
-        s = self.scale
-        carts, faces, edges, poles, pole_colors = [], [], [], [], []
+class _CartPoleBody:
+    """The cart (a box centred on x) and the pole from the top of the cart, on a rail; reference under the rail."""
+
+    below = 0.25
+    hide_ticks = "left"
+
+    @staticmethod
+    def limits(static):
+        (x0, x1), _ = _planar_limits(static)
+        return (min(x0, -1.0), max(x1, 1.0)), (_CART_REF_Y - 0.25, 0.5 * CART_HEIGHT + 2 * static.reach + 0.2)
+
+    @staticmethod
+    def ground(ax, static, xlim, zlim, s):
+        return ax.plot(xlim, [_CART_RAIL] * 2, color="#606060", lw=2.5 * s, zorder=1)
+
+    @staticmethod
+    def reference(ax, static, s):
+        artists = []
+        if static.ref is not None:
+            span = [_nanmin(static.ref[:, 0]), _nanmax(static.ref[:, 0])]
+            artists += ax.plot(span, [_CART_REF_Y] * 2, "--", color="black", lw=1.1 * s)
+        if static.goal is not None:
+            artists += ax.plot([static.goal[0]], [_CART_REF_Y], "^", color="black", ms=7 * s, zorder=3)
+        return artists
+
+    @staticmethod
+    def shapes(frame, s):
+        w, h = 0.5 * CART_WIDTH, 0.5 * CART_HEIGHT
+        poles, pole_colors, carts, faces, edges = [], [], [], [], []
         for state, color, length in zip(frame.states, frame.colors, frame.pole_half_length, strict=True):
-            x = state[0]
-            w, h = 0.5 * CART_WIDTH, 0.5 * CART_HEIGHT
+            x, theta = state[0], state[2]
             carts.append([(x - w, -h), (x + w, -h), (x + w, h), (x - w, h)])
             faces.append(_with_alpha(color, frame.alpha))
             edges.append(_with_alpha(_darker(color, 0.75), frame.alpha))
-            hinge, tip = self._geometry(state, length)
-            poles.append([hinge, tip])
+            hinge = np.array([x, h])
+            poles.append([hinge, hinge + 2 * length * np.array([np.sin(theta), np.cos(theta)])])
             pole_colors.append(_with_alpha(_darker(color), frame.alpha))
-        self.boxes.set_verts(carts)
-        self.boxes.set_facecolors(faces)
-        self.boxes.set_edgecolors(edges)
-        self.boxes.set_linewidths(1.0 * s)
-        self.bodies.set_segments(poles)
-        self.bodies.set_colors(pole_colors)
-        self.bodies.set_linewidths(5.0 * s)
-        self._set_trails(frame)
-        ref = frame.ref_point
-        self._set_ref_marker(frame, None if ref is None else (ref[0], _CART_REF_Y))
+        return poles, pole_colors, 5.0 * s, carts, faces, edges
+
+    @staticmethod
+    def trail(frame, i):  # the pole's tip
+        trail, length = frame.trails[i], frame.pole_half_length[i]
+        tip_x = trail[:, 0] + 2 * length * np.sin(trail[:, 2])
+        return np.stack([tip_x, 0.5 * CART_HEIGHT + 2 * length * np.cos(trail[:, 2])], axis=-1)
+
+    @staticmethod
+    def ref_marker(frame, ref):
+        return [ref[0]], [_CART_REF_Y]
 
 
-class _QuadrotorPlanarScene(_PlanarScene):
-    """quadrotor_2d (and quadrotor_1d, with x = 0 and theta = 0)."""
+def _side_offsets(n: int) -> np.ndarray:
+    """x positions of n 1D quadrotors side by side (the 1D model has no x)."""
+    if n == 1:
+        return np.zeros(1)
+    return min(0.45, 1.6 / (n - 1)) * (np.arange(n) - 0.5 * (n - 1))
 
-    below = 0.2
 
-    def _pose(self, frame: _Frame, i: int, state) -> tuple[float, float, float]:
-        return state[0], state[2], state[4]
+class _PlanarQuadrotorBody:
+    """A quadrotor in side view: a bar along the body x axis with rotors at its ends (front, +x body, in red) and
+    a short line along the thrust axis. ``one_d``: the 1D quadrotor (state ``[z, z_dot]``), drawn level at
+    height z, several copies side by side; else the 2D one (``[x, x_dot, z, z_dot, theta, theta_dot]``)."""
 
-    def _trail_points(self, frame, i):
-        trail = frame.trails[i]
-        return np.stack([trail[:, 0], trail[:, 2]], axis=-1)
+    def __init__(self, one_d: bool):
+        self.one_d = one_d
+        self.below = 0.2
+        self.hide_ticks = "bottom" if one_d else None
 
-    def _update(self, frame: _Frame) -> None:
-        s = self.scale
+    def _poses(self, frame):
+        """(N, 3): x, z, theta of each copy."""
+        states = np.asarray(frame.states)
+        if self.one_d:
+            return np.stack([_side_offsets(len(states)), states[:, 0], np.zeros(len(states))], axis=-1)
+        return states[:, [0, 2, 4]]
+
+    def limits(self, static):
+        (x0, x1), z = _planar_limits(static)
+        return ((min(x0, -0.8), max(x1, 0.8)), z) if self.one_d else ((x0, x1), z)
+
+    @staticmethod
+    def ground(ax, static, xlim, zlim, s):
+        return _ground(ax, static, xlim, zlim, s)
+
+    def reference(self, ax, static, s):
+        if not self.one_d:
+            return _path_and_goal(ax, static, s)
+        artists = []
+        if static.ref is not None:
+            z = static.ref[:, 2]
+            artists += ax.plot([0.0, 0.0], [_nanmin(z), _nanmax(z)], "--", color="black", lw=1.1 * s)
+        if static.goal is not None:
+            artists += ax.plot([-0.85, 0.85], [static.goal[2]] * 2, ":", color="black", lw=1.1 * s, zorder=1)
+            artists += ax.plot([0.0], [static.goal[2]], "x", color="black", ms=9 * s, mew=2 * s, zorder=3)
+        return artists
+
+    def shapes(self, frame, s):
         segments, colors, widths = [], [], []
-        for i, (state, color) in enumerate(zip(frame.states, frame.colors, strict=True)):
-            x, z, theta = self._pose(frame, i, state)
+        for (x, z, theta), color in zip(self._poses(frame), frame.colors, strict=True):
             center = np.array([x, z])
             body_x = np.array([np.cos(theta), -np.sin(theta)])
-            body_z = np.array([np.sin(theta), np.cos(theta)])
+            body_z = np.array([np.sin(theta), np.cos(theta)])  # theta > 0 tilts the thrust towards +x
             front, back = center + DRAWN_ARM * body_x, center - DRAWN_ARM * body_x
             body_color = _with_alpha(color, frame.alpha)
             segments += [[back, front], [center, center + 0.09 * body_z]]
@@ -442,64 +476,22 @@ class _QuadrotorPlanarScene(_PlanarScene):
                 segments += [[end, hub], [hub - DRAWN_ROTOR * body_x, hub + DRAWN_ROTOR * body_x]]
                 colors += [body_color, _with_alpha(rotor_color, frame.alpha)]
                 widths += [1.6 * s, 2.6 * s]
-        self.bodies.set_segments(segments)
-        self.bodies.set_colors(colors)
-        self.bodies.set_linewidths(widths)
-        self.boxes.set_verts([])
-        self._set_trails(frame)
-        ref = frame.ref_point
-        self._set_ref_marker(frame, None if ref is None else self._ref_xz(ref))
+        return segments, colors, widths, [], [], []
 
-    def _ref_xz(self, ref):
-        return ref[0], ref[2]
-
-
-class _Quadrotor1DScene(_QuadrotorPlanarScene):
-    def _build(self) -> None:
-        super()._build()
-        self.ax.tick_params(bottom=False, labelbottom=False)  # the 1D model has no x
-
-    def _limits(self, static):
-        (x0, x1), z = super()._limits(static)
-        return (min(x0, -0.8), max(x1, 0.8)), z
-
-    def _offsets(self, n: int) -> np.ndarray:
-        if n == 1:
-            return np.zeros(1)
-        spacing = min(0.45, 1.6 / (n - 1))
-        return spacing * (np.arange(n) - 0.5 * (n - 1))
-
-    def _pose(self, frame, i, state):
-        return self._offsets(len(frame.states))[i], state[0], 0.0
-
-    def _trail_points(self, frame, i):
+    def trail(self, frame, i):
         trail = frame.trails[i]
-        return np.stack([np.full(len(trail), self._offsets(len(frame.states))[i]), trail[:, 0]], axis=-1)
+        if self.one_d:
+            return np.stack([np.full(len(trail), _side_offsets(len(frame.states))[i]), trail[:, 0]], axis=-1)
+        return np.stack([trail[:, 0], trail[:, 2]], axis=-1)
 
-    def _draw_reference(self, static):
-        ax, s = self.ax, self.scale
-        if static.ref is not None:
-            z = static.ref[:, 2]
-            self.static_artists += ax.plot([0.0, 0.0], [_nanmin(z), _nanmax(z)], "--", color="black", lw=1.1 * s)
-        if static.goal is not None:
-            self.static_artists += ax.plot(
-                [-0.85, 0.85], [static.goal[2]] * 2, ":", color="black", lw=1.1 * s, zorder=1
-            )
-            self.static_artists += ax.plot(
-                [0.0], [static.goal[2]], "x", color="black", ms=9 * self.scale, mew=2 * s, zorder=3
-            )
-
-    def _set_ref_marker(self, frame, point):
-        if point is None:
-            self.ref_marker.set_data([], [])
-        else:  # the current reference height, across every copy
-            offsets = self._offsets(len(frame.states))
-            self.ref_marker.set_data(offsets, np.full(len(offsets), point[1]))
-
-    def _ref_xz(self, ref):
-        return 0.0, ref[0]
+    def ref_marker(self, frame, ref):
+        if self.one_d:  # the current reference height, across every copy
+            offsets = _side_offsets(len(frame.states))
+            return offsets, np.full(len(offsets), ref[0])
+        return [ref[0]], [ref[2]]
 
 
+# ------------------------------------------------------------------------------------------ 3D view
 def _rotation(phi, theta, psi) -> np.ndarray:
     """``R = Rz(psi) Ry(theta) Rx(phi)``, body to world."""
     cf, sf, ct, st, cp, sp = np.cos(phi), np.sin(phi), np.cos(theta), np.sin(theta), np.cos(psi), np.sin(psi)
@@ -516,13 +508,15 @@ _RING = np.stack(
 )
 
 
-class _Quadrotor3DScene(_Scene):
-    def _build(self) -> None:
+class _Quadrotor3DView:
+    """mplot3d perspective of the 3D quadrotor: an X of two arms with a rotor ring per motor, and its shadow."""
+
+    def build(self, scene: _Scene) -> None:
         from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers the projection)
         from mpl_toolkits.mplot3d.art3d import Line3DCollection
 
-        s = self.scale
-        self.ax = self.fig.add_axes((-0.02, -0.1, 1.04, 1.08), projection="3d")
+        s = scene.scale
+        self.ax = scene.fig.add_axes((-0.02, -0.1, 1.04, 1.08), projection="3d")
         self.ax.view_init(elev=24, azim=-58)
         self.ax.set_proj_type("persp", focal_length=1.5)
         for axis in (self.ax.xaxis, self.ax.yaxis, self.ax.zaxis):
@@ -539,13 +533,14 @@ class _Quadrotor3DScene(_Scene):
             self.ax.add_collection3d(artist, autolim=False)
         self.ref_marker = self.ax.plot([], [], [], "o", ms=6 * s, mfc="none", mec="black", mew=1.2 * s)[0]
         self.ref_marker.set_animated(True)
-        self.dynamic = [self.shadows, self.trails, self.bodies, self.ref_marker]
+        scene.dynamic = [self.shadows, self.trails, self.bodies, self.ref_marker]
         self.floor = 0.0
 
-    def _draw_artist(self, artist) -> None:
+    @staticmethod
+    def draw_artist(fig, artist) -> None:
         if hasattr(artist, "do_3d_projection"):
             artist.do_3d_projection()
-        self.fig.draw_artist(artist)
+        fig.draw_artist(artist)
 
     @staticmethod
     def _box_edges(lo, hi) -> list:
@@ -558,13 +553,10 @@ class _Quadrotor3DScene(_Scene):
                     edges.append([[bounds[c, d] for d, c in enumerate(a)], [bounds[c, d] for d, c in enumerate(b)]])
         return edges
 
-    def _draw_static(self, static: _Static) -> None:
-        ax, s = self.ax, self.scale
-        lows = [static.fail_lo]
-        highs = [static.fail_hi]
-        for lo, hi in static.boxes:
-            lows.append(lo)
-            highs.append(hi)
+    def draw_static(self, scene: _Scene, static: _Static) -> None:
+        ax, s = self.ax, scene.scale
+        lows = [static.fail_lo, *(lo for lo, _ in static.boxes)]
+        highs = [static.fail_hi, *(hi for _, hi in static.boxes)]
         if static.ref is not None:
             lows.append(np.nanmin(static.ref, axis=0))
             highs.append(np.nanmax(static.ref, axis=0))
@@ -578,44 +570,30 @@ class _Quadrotor3DScene(_Scene):
         ax.set_zlim(lo[2], hi[2])
         ax.set_box_aspect(tuple(hi - lo), zoom=0.92)
         self.floor = lo[2]
-        add = self.static_artists.append
-        fail_lo = np.where(np.isfinite(static.fail_lo), static.fail_lo, lo)
-        fail_hi = np.where(np.isfinite(static.fail_hi), static.fail_hi, hi)
-        add(
-            ax.add_collection3d(
-                self._Line3DCollection(self._box_edges(fail_lo, fail_hi), colors=_BOUND_COLOR, linewidths=1.3 * s),
-                autolim=False,
+        # The failure box (solid red) and the constraint boxes (dashed orange), unbounded sides at the view's edge.
+        styles = [{"colors": _BOUND_COLOR, "linewidths": 1.3 * s}] + [
+            {"colors": _CONSTRAINT_COLOR, "linewidths": 1.4 * s, "linestyles": (0, (5, 3))} for _ in static.boxes
+        ]
+        for (box_lo, box_hi), style in zip([(static.fail_lo, static.fail_hi), *static.boxes], styles, strict=True):
+            edges = self._box_edges(
+                np.where(np.isfinite(box_lo), box_lo, lo), np.where(np.isfinite(box_hi), box_hi, hi)
             )
-        )
-        for box_lo, box_hi in static.boxes:
-            box_lo = np.where(np.isfinite(box_lo), box_lo, lo)
-            box_hi = np.where(np.isfinite(box_hi), box_hi, hi)
-            add(
-                ax.add_collection3d(
-                    self._Line3DCollection(
-                        self._box_edges(box_lo, box_hi),
-                        colors=_CONSTRAINT_COLOR,
-                        linewidths=1.4 * s,
-                        linestyles=(0, (5, 3)),
-                    ),
-                    autolim=False,
-                )
-            )
+            scene.static_artists.append(ax.add_collection3d(self._Line3DCollection(edges, **style), autolim=False))
         if static.ref is not None:
             ref = np.nan_to_num(static.ref)
-            self.static_artists += ax.plot(ref[:, 0], ref[:, 1], ref[:, 2], "--", color="black", lw=1.1 * s)
-            self.static_artists += ax.plot(
+            scene.static_artists += ax.plot(ref[:, 0], ref[:, 1], ref[:, 2], "--", color="black", lw=1.1 * s)
+            scene.static_artists += ax.plot(
                 ref[:, 0], ref[:, 1], np.full(len(ref), self.floor), "-", color="black", lw=0.8 * s, alpha=0.18
             )
         if static.goal is not None:
             goal = np.nan_to_num(static.goal)
-            self.static_artists += ax.plot([goal[0]], [goal[1]], [goal[2]], "x", color="black", ms=9 * s, mew=2 * s)
-            self.static_artists += ax.plot(
+            scene.static_artists += ax.plot([goal[0]], [goal[1]], [goal[2]], "x", color="black", ms=9 * s, mew=2 * s)
+            scene.static_artists += ax.plot(
                 [goal[0]] * 2, [goal[1]] * 2, [goal[2], self.floor], ":", color="black", lw=1.0 * s, alpha=0.5
             )
 
-    def _update(self, frame: _Frame) -> None:
-        s = self.scale
+    def update(self, scene: _Scene, frame: _Frame) -> None:
+        s = scene.scale
         segments, colors, widths, shadows = [], [], [], []
         for state, color in zip(frame.states, frame.colors, strict=True):
             center = np.array([state[0], state[2], state[4]])
@@ -654,25 +632,16 @@ class _Quadrotor3DScene(_Scene):
             self.ref_marker.set_data_3d([ref[0]], [ref[2]], [ref[4]])
 
 
-_SCENE_CLASSES = {
-    "cartpole": _CartPoleScene,
-    "quadrotor_1d": _Quadrotor1DScene,
-    "quadrotor_2d": _QuadrotorPlanarScene,
-    "quadrotor_3d": _Quadrotor3DScene,
+_VIEW_FACTORIES = {
+    "cartpole": lambda: _PlanarView(_CartPoleBody()),
+    "quadrotor_1d": lambda: _PlanarView(_PlanarQuadrotorBody(one_d=True)),
+    "quadrotor_2d": lambda: _PlanarView(_PlanarQuadrotorBody(one_d=False)),
+    "quadrotor_3d": _Quadrotor3DView,
 }
+VIEWS = tuple(_VIEW_FACTORIES)
+"""The views a ``System.view`` may name."""
 _SCENES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 _SCENES_LOCK = threading.Lock()
-
-
-@dataclass(frozen=True)
-class _Defaults:
-    """Numbers of ``env.default_params`` the renderer needs, pulled once per env."""
-
-    goal: np.ndarray
-    state_low: np.ndarray
-    state_high: np.ndarray
-    pole_half_length: float
-    constraints: tuple
 
 
 def _env_cache(env) -> dict:
@@ -688,12 +657,12 @@ def _scene(env, width: int, height: int) -> _Scene:
     with _SCENES_LOCK:
         scene = cache.get((width, height))
         if scene is None:
-            name = env.system.name
-            if name not in _SCENE_CLASSES:
+            view = env.system.view
+            if view not in _VIEW_FACTORIES:
                 raise ValueError(
-                    f"render: no view for system {name!r}; systems with a view: {', '.join(_SCENE_CLASSES)}"
+                    f"render: system {env.system.name!r} asks for view {view!r}; allowed views are {', '.join(VIEWS)}"
                 )
-            scene = cache[(width, height)] = _SCENE_CLASSES[name](env.system, width, height)
+            scene = cache[(width, height)] = _Scene(_VIEW_FACTORIES[view](), width, height)
         return scene
 
 
@@ -728,7 +697,7 @@ def _static(env, params, x_ref, title: str, reach: float) -> _Static:
 
 
 def _pole_half_lengths(env, params, n: int) -> np.ndarray:
-    if env.system.name != "cartpole":
+    if env.system.view != "cartpole":  # the only view that draws a length from params
         return np.zeros(n)
     length = _np(params.physics.pole_half_length)
     if length.ndim == 1 and length.shape[0] == n:
@@ -815,7 +784,7 @@ class _Animation:
 
             x_ref = np.asarray(jax.jit(env.reference)(params)[0])
         if stride is None:
-            stride = max(1, math.ceil(1.0 / (self.dt * _MAX_GIF_FPS) - 1e-9))
+            stride = max(1, math.ceil(1.0 / (self.dt * MAX_GIF_FPS) - 1e-9))
         if isinstance(stride, bool) or not float(stride).is_integer() or stride < 1:
             raise ValueError(f"stride: expected a positive integer, got {stride!r}")
         self.stride = int(stride)
@@ -876,106 +845,6 @@ def animation_frames(
     return iter(_Animation(env, xs, params, x_ref, max_copies, width, height, stride, trail, dt))
 
 
-def _fixed_palette() -> np.ndarray:
-    """(K, 3) uint8: the drawing colours blended over white at several opacities, and a grey ramp."""
-    keys = [*_COPY_COLORS, *(_darker(c) for c in _COPY_COLORS), *(_darker(c, 0.75) for c in _COPY_COLORS)]
-    keys += [_FRONT_COLOR, _BOUND_COLOR, _CONSTRAINT_COLOR, _ENDED_COLOR, "black"]
-    rgb = np.array([to_rgba(c)[:3] for c in keys])
-    alphas = np.array([1.0, 0.75, 0.45, 0.2])[:, None, None]
-    blends = (alphas * rgb[None] + (1 - alphas)).reshape(-1, 3)
-    greys = np.repeat(np.linspace(0.0, 1.0, 17)[:, None], 3, axis=1)
-    return np.round(255 * np.concatenate([blends, greys])).astype(np.uint8)
-
-
-class _PaletteMap:
-    """Exact nearest-colour mapping of RGB frames onto a fixed 256-colour palette, memoised per colour."""
-
-    def __init__(self, entries: np.ndarray):
-        self.entries = entries.astype(np.int32)  # (256, 3)
-        self.lut = np.full(1 << 24, -1, dtype=np.int16)
-
-    def __call__(self, frame: np.ndarray) -> np.ndarray:
-        rgb = frame.astype(np.int32)
-        codes = (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
-        index = self.lut[codes]
-        missing = index < 0
-        if missing.any():
-            new = np.unique(codes[missing])
-            colors = np.stack([new >> 16, (new >> 8) & 255, new & 255], axis=-1)
-            distance = ((colors[:, None, :] - self.entries[None, :, :]) ** 2).sum(axis=-1)
-            self.lut[new] = np.argmin(distance, axis=1)
-            index = self.lut[codes]
-        return index.astype(np.uint8)
-
-
-def _write_gif(path: Path, frames, fps: float, sample) -> None:
-    from PIL import Image
-
-    # One palette for the whole animation, no dithering: stable colours and small frame deltas. Part of it is
-    # fixed (every drawing colour over white at a few opacities, and a grey ramp), so that small bodies keep their
-    # colours; the rest is a median cut of three sample frames (backgrounds, panes, blends). Index 255 is kept
-    # free: it marks a pixel that did not change since the previous frame (transparent, drawn over the previous
-    # frame), which compresses far better than redrawing the box between the time label and the bodies.
-    fixed = _fixed_palette()
-    count = _UNCHANGED - len(fixed)
-    adaptive = Image.fromarray(np.concatenate(sample, axis=0)).quantize(colors=count, method=Image.Quantize.MEDIANCUT)
-    entries = np.concatenate([fixed, np.asarray(adaptive.getpalette()[: 3 * count]).reshape(-1, 3)])
-    entries = np.pad(entries, ((0, 256 - len(entries)), (0, 0)), mode="edge").astype(np.uint8)
-    to_index = _PaletteMap(entries[:_UNCHANGED])
-    palette = entries.ravel().tolist()
-    images, previous = [], None
-    for frame in frames:
-        index = to_index(frame)
-        encoded = index if previous is None else np.where(index == previous, np.uint8(_UNCHANGED), index)
-        previous = index
-        image = Image.frombytes("P", (frame.shape[1], frame.shape[0]), encoded.tobytes())
-        image.putpalette(palette)
-        if previous is not None and images:  # the first frame is whole and opaque (readers then give RGB)
-            image.info["transparency"] = _UNCHANGED
-        images.append(image)
-    duration = max(20, round(1000.0 / fps / 10.0) * 10)
-    options = dict(duration=duration, loop=0, optimize=False, disposal=1)
-    write_atomic(
-        path, lambda file: images[0].save(file, format="GIF", save_all=True, append_images=images[1:], **options)
-    )
-
-
-def _write_mp4(path: Path, frames, fps: float, width: int, height: int) -> None:
-    import imageio_ffmpeg
-
-    # libx264's yuv420p needs even sizes: pad odd frames with a white row/column rather than let ffmpeg rescale.
-    pad_h, pad_w = height % 2, width % 2
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".mp4")
-    os.close(fd)
-    try:
-        writer = imageio_ffmpeg.write_frames(
-            tmp,
-            (width + pad_w, height + pad_h),
-            fps=fps,
-            codec="libx264",
-            quality=7,
-            macro_block_size=2,
-            ffmpeg_log_level="error",
-            output_params=["-movflags", "+faststart"],
-        )
-        with warnings.catch_warnings():
-            # Starting ffmpeg forks and immediately execs, which is safe; JAX warns about any fork.
-            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
-            writer.send(None)
-        for frame in frames:
-            if pad_h or pad_w:
-                frame = np.pad(frame, ((0, pad_h), (0, pad_w), (0, 0)), constant_values=255)
-            writer.send(np.ascontiguousarray(frame))
-        writer.close()
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def animate(
     env,
     xs,
@@ -1029,9 +898,9 @@ def animate(
     if suffix == ".gif":
         steps = animation.steps
         sample = [animation.frame(steps[i]) for i in sorted({0, len(steps) // 2, len(steps) - 1})]
-        _write_gif(path, iter(animation), fps, sample)
+        write_gif(path, iter(animation), fps, sample, key_colors=_KEY_COLORS)
     else:
-        _write_mp4(path, iter(animation), fps, animation.width, animation.height)
+        write_mp4(path, iter(animation), fps, animation.width, animation.height)
     return path
 
 

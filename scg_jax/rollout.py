@@ -26,20 +26,61 @@ def next_reset_key(episode_key):
     return jax.random.fold_in(episode_key, RESET_STREAM)
 
 
-def auto_reset_step(env: Env, state: EnvState, action, params: EnvParams) -> StepOutput:
-    """``env.step``, then a fresh episode wherever it terminated or was truncated.
+def initial_reset_keys(key, num_envs: int):
+    """The reset keys (num_envs,) of the first episodes of ``make_rollout(...)(key, params)``.
+
+    The Gymnasium vector env's ``reset(seed=s)`` uses ``initial_reset_keys(jax.random.key(s), num_envs)``; pass
+    them to the brax wrapper's ``reset`` to get the same episodes there.
+    """
+    return jax.random.split(jax.random.split(key)[0], num_envs)
+
+
+def select_where(done, fresh, current):
+    """``where(done, fresh, current)`` leafwise over two pytrees, ``done`` (batch...) broadcast over each leaf's
+    trailing axes."""
+    done = jnp.asarray(done, bool)
+
+    def select(new, old):
+        return jnp.where(jnp.reshape(done, done.shape + (1,) * (jnp.ndim(old) - done.ndim)), new, old)
+
+    return jax.tree.map(select, fresh, current)
+
+
+def restart_done(done, episode_keys, current, reset: Callable[[Any], Any], skip_if_none_done: bool = False):
+    """The one auto-reset rule: where ``done``, replace ``current`` by ``reset(next_reset_key(episode_keys))``.
+
+    Every auto-reset of the suite goes through here: ``auto_reset_step`` (and so ``make_rollout``), the
+    Gymnasium vector env and the brax wrapper's ``EpisodicAutoResetWrapper``. So one reset key gives one
+    sequence of episodes whichever of them runs it: copy ``i`` starts from its reset key, and each following
+    episode from ``next_reset_key`` of the finished episode's ``EnvState.key``.
+
+    Args:
+        done: bool of shape ``()`` (one copy) or ``(N,)`` (a batch): where to start a new episode.
+        episode_keys: the ``EnvState.key`` of the finished episodes, same leading shape as ``done``.
+        current: a pytree whose leaves have ``done``'s shape as leading axes (e.g. ``(obs, EnvState)``).
+        reset: ``reset(keys) -> pytree`` of ``current``'s structure for the new episodes (batched when ``done``
+            is; e.g. ``jax.vmap(lambda k: env.reset(k, params))``).
+        skip_if_none_done: batched only: skip the reset computation when no copy is done (``lax.cond``).
+    """
+    keys = jax.vmap(next_reset_key)(episode_keys) if jnp.ndim(done) else next_reset_key(episode_keys)
+    if skip_if_none_done and jnp.ndim(done):
+        fresh = jax.lax.cond(jnp.any(done), reset, lambda _: current, keys)
+    else:
+        fresh = reset(keys)
+    return select_where(done, fresh, current)
+
+
+def auto_reset_step(env: Env, state: EnvState, action, params: EnvParams, adversary=None) -> StepOutput:
+    """``env.step``, then a fresh episode wherever it terminated or was truncated (``restart_done``).
 
     The reset key is ``next_reset_key(finished episode's key)``, so the whole sequence of episodes is still
     determined by the first reset key, and it is never one of the keys the steps drew noise from. The
     observation of the finished step is kept as ``info["final_obs"]`` (equal to ``obs`` where no reset
     happened); ``terminated``, ``truncated``, ``reward`` and the rest of ``info`` describe the finished step.
     """
-    out = env.step(state, action, params)
+    out = env.step(state, action, params, adversary)
     done = out.terminated | out.truncated
-    reset_key = next_reset_key(out.state.key)
-    reset_obs, reset_state = env.reset(reset_key, params)
-    obs = jnp.where(done, reset_obs, out.obs)
-    next_state = jax.tree.map(lambda fresh, old: jnp.where(done, fresh, old), reset_state, out.state)
+    obs, next_state = restart_done(done, out.state.key, (out.obs, out.state), lambda key: env.reset(key, params))
     return out._replace(obs=obs, state=next_state, info={**out.info, "final_obs": out.obs})
 
 
@@ -97,8 +138,8 @@ def make_rollout(
 
     @jax.jit
     def rollout(key, params: EnvParams) -> Trajectory:
-        key_reset, key_policy = jax.random.split(key)
-        obs, state = batched_reset(jax.random.split(key_reset, num_envs), params)
+        key_policy = jax.random.split(key)[1]  # [0] makes the reset keys (initial_reset_keys)
+        obs, state = batched_reset(initial_reset_keys(key, num_envs), params)
 
         def body(carry, step_key):
             obs, state = carry

@@ -36,9 +36,13 @@ class SymbolicModel:
     Attributes:
         nx, nu: state and input sizes. dt: control period (s).
         x, u: the ``SX`` symbols (nx, 1) and (nu, 1) the functions are built from.
-        fc: ``fc(x, u) -> x_dot``, continuous dynamics.
+        fc: ``fc(x, u) -> x_dot``, continuous dynamics, for *one* point: ``x`` (nx,) or (nx, 1), ``u`` (nu,) or
+            (nu, 1) (numbers or CasADi symbols), result a (nx, 1) ``DM``/``SX``/``MX``. CasADi reads an (N, nx)
+            array as a matrix, not as N points, so for trajectories use ``evaluate_fc`` (numpy, any leading
+            axes) or ``fc.map(N)(xs.T, us.T)`` (columns are points).
         fd: ``fd(x, u) -> x_next`` over one control period: the env's integrator and substeps
-            (``discretization="env"``) or one RK4 step of length dt (``"rk4"``).
+            (``discretization="env"``) or one RK4 step of length dt (``"rk4"``); shapes as ``fc``, batched
+            with ``evaluate_fd``.
         df: ``df(x, u) -> (A, B)``, Jacobians of ``fc``.
         dfd: ``dfd(x, u) -> (Ad, Bd)``, Jacobians of ``fd``.
         cost: ``cost(x, u, x_ref, u_ref) -> (l, l_x, l_u, l_xx, l_uu, l_xu)``, the stage cost
@@ -74,11 +78,45 @@ class SymbolicModel:
     constraint_specs: tuple = ()
     constraint_tolerances: tuple = ()
 
+    def evaluate_fc(self, x, u) -> np.ndarray:
+        """``fc`` on numpy arrays of points: ``x (..., nx)``, ``u (..., nu)`` -> ``x_dot (..., nx)``.
+
+        The leading axes broadcast against each other (e.g. a trajectory ``(T, nx)`` with ``(T, nu)``, a rollout
+        ``(T, N, nx)`` with ``(T, N, nu)``, or many states with one input ``(nu,)``). One ``fc.map`` call.
+        """
+        return _evaluate_mapped(self.fc, "evaluate_fc", self.nx, self.nu, x, u)
+
+    def evaluate_fd(self, x, u) -> np.ndarray:
+        """``fd`` on numpy arrays of points: ``x (..., nx)``, ``u (..., nu)`` -> ``x_next (..., nx)`` (as
+        ``evaluate_fc``)."""
+        return _evaluate_mapped(self.fd, "evaluate_fd", self.nx, self.nu, x, u)
+
     def linearize(self, x0, u0) -> Linearization:
         """Continuous and discrete Jacobians about ``(x0 (nx,), u0 (nu,))``."""
         A, B = self.df(np.asarray(x0, float), np.asarray(u0, float))
         Ad, Bd = self.dfd(np.asarray(x0, float), np.asarray(u0, float))
         return Linearization(A=np.array(A), B=np.array(B), Ad=np.array(Ad), Bd=np.array(Bd))
+
+
+def _evaluate_mapped(function: cs.Function, name: str, nx: int, nu: int, x, u) -> np.ndarray:
+    """``function(x, u)`` over the broadcast leading axes of ``x (..., nx)`` and ``u (..., nu)``."""
+    x, u = np.asarray(x, dtype=float), np.asarray(u, dtype=float)
+    if x.ndim == 0 or x.shape[-1] != nx:
+        raise ValueError(f"{name}: x must have shape (..., nx) with nx = {nx}, got {x.shape}")
+    if u.ndim == 0 or u.shape[-1] != nu:
+        raise ValueError(f"{name}: u must have shape (..., nu) with nu = {nu}, got {u.shape}")
+    try:
+        lead = np.broadcast_shapes(x.shape[:-1], u.shape[:-1])
+    except ValueError:
+        raise ValueError(
+            f"{name}: the leading axes of x {x.shape[:-1]} and u {u.shape[:-1]} do not broadcast"
+        ) from None
+    xs = np.broadcast_to(x, lead + (nx,)).reshape(-1, nx)
+    us = np.broadcast_to(u, lead + (nu,)).reshape(-1, nu)
+    if xs.shape[0] == 0:
+        return np.zeros(lead + (nx,))
+    out = function.map(xs.shape[0])(xs.T, us.T)  # CasADi's map takes one point per column
+    return np.asarray(out.full()).T.reshape(lead + (nx,))
 
 
 def _to_float(name: str, value) -> float:

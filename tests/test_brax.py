@@ -10,7 +10,7 @@ import pytest
 
 import scg_jax
 
-pytest.importorskip("brax")
+pytest.importorskip("scg_jax.adapters.brax")  # first: it imports brax without the warp message
 
 from brax.envs.wrappers.training import wrap as brax_default_wrap  # noqa: E402
 from brax.training.acting import Evaluator  # noqa: E402

@@ -20,7 +20,7 @@ from scg_jax.adapters.gymnasium import (
     ScgGymEnv,
     ScgVectorEnv,
 )
-from scg_jax.rollout import next_reset_key
+from scg_jax.rollout import initial_reset_keys, next_reset_key
 
 IDS = tuple(GYMNASIUM_IDS.values())
 N = 4  # copies in the vector tests (one compilation per batch size)
@@ -205,7 +205,7 @@ def test_truncated_exactly_at_the_time_limit():
         assert terminated is False
         assert truncated is (k == num_steps)
         np.testing.assert_allclose(obs, goal, atol=1e-5)
-        assert reward == pytest.approx(0.0, abs=1e-8)
+        assert reward == pytest.approx(1.0, abs=1e-7)  # exp(-c) at c = 0: the default exponential reward
     assert info["step"] == num_steps == 50
 
 
@@ -313,7 +313,7 @@ def test_vector_env_matches_the_functional_env(vector_env_options):
     fenv, params = envs.functional_env, envs.params
     reset, step, _ = _vmapped(fenv)
     obs, info = envs.reset(seed=7)
-    f_obs, f_state = reset(jax.random.split(jax.random.key(7), n), params)
+    f_obs, f_state = reset(initial_reset_keys(jax.random.key(7), n), params)
     np.testing.assert_allclose(obs, np.asarray(f_obs), rtol=1e-6, atol=1e-7)
     np.testing.assert_array_equal(info["x0"], np.asarray(f_state.x))
     lengths = info["physics"]["pole_half_length"]
@@ -341,7 +341,7 @@ def test_vector_autoreset_next_step_and_same_step(vector_env_options):
     same_env = ScgVectorEnv(n, "cartpole", autoreset_mode=AutoresetMode.SAME_STEP, **vector_env_options)
     fenv, params = next_env.functional_env, next_env.params
     reset, step, next_key = _vmapped(fenv)
-    _, f_state = reset(jax.random.split(jax.random.key(0), n), params)
+    _, f_state = reset(initial_reset_keys(jax.random.key(0), n), params)
     next_env.reset(seed=0)
     same_env.reset(seed=0)
     a = np.zeros((n, 1), np.float32)
@@ -385,7 +385,7 @@ def test_vector_autoreset_of_some_copies():
     reset, step, _ = _vmapped(fenv)
     auto = jax.jit(jax.vmap(lambda s, a: scg_jax.auto_reset_step(fenv, s, a, params)))
     envs.reset(seed=3)
-    _, f_state = reset(jax.random.split(jax.random.key(3), n), params)
+    _, f_state = reset(initial_reset_keys(jax.random.key(3), n), params)
     a = np.array([[1.0], [1.0], [0.0], [0.0]], np.float32)
     crashed = False
     for _ in range(60):
@@ -471,3 +471,22 @@ def test_check_env_with_rendering():
     frames = envs.render()
     assert len(frames) == N and all(frame.shape == (480, 480, 3) for frame in frames)
     assert not np.array_equal(frames[0], frames[1])  # each copy is drawn in its own state
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_ids_default_to_a_positive_reward_so_ending_early_costs_return(env_id):
+    env = gymnasium.make(env_id, **SHORT)
+    fenv = env.unwrapped.functional_env
+    assert fenv.reward_type == "exponential" and fenv.done_on_out_of_bounds
+    env.reset(seed=0)
+    _, reward, *_ = env.step(np.zeros(fenv.nu, np.float32))
+    assert 0.0 < reward <= 1.0
+    quadratic = gymnasium.make(env_id, reward_type="quadratic", **SHORT)
+    assert quadratic.unwrapped.functional_env.reward_type == "quadratic"  # a keyword overrides the default
+
+
+def test_a_config_decides_the_reward_type_itself():
+    env = gymnasium.make(
+        "scg_jax/CartPole-v0", config="configs/cartpole_stabilization.yaml", overrides=["env.reward_type=quadratic"]
+    )
+    assert env.unwrapped.functional_env.reward_type == "quadratic"  # not the adapters' exponential default

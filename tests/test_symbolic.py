@@ -86,3 +86,41 @@ def test_prior_parameters_change_the_model_and_batched_params_are_refused():
         env.symbolic_model(batched)
     with pytest.raises(ValueError, match="discretization: unknown value 'zoh'; allowed values are env, rk4"):
         env.symbolic_model(params, discretization="zoh")
+
+
+@pytest.mark.parametrize("name", ["cartpole", "quadrotor_3d"])
+def test_evaluate_fc_and_fd_take_rollout_arrays_and_match_the_jax_dynamics(name):
+    with jax.enable_x64(True):
+        env = scg_jax.make(name, episode_len_sec=0.4)
+        params = env.default_params
+        u_low, u_high = env.input_bounds(params.physics)
+
+        def policy(obs, state, p, key):
+            return jax.random.uniform(key, (env.nu,), minval=u_low, maxval=u_high, dtype=u_low.dtype)
+
+        traj = scg_jax.rollout(env, params, policy, jax.random.key(2), num_envs=3, auto_reset=False)  # (T, N, .)
+        xs, us = np.asarray(traj.x), np.asarray(traj.info["u"])
+        model = env.symbolic_model(params)
+        physics = params.physics
+        x_dot = jax.vmap(jax.vmap(lambda x, u: env.system.dynamics(x, u, physics, scg_jax.backends.jax_backend)))
+        np.testing.assert_allclose(model.evaluate_fc(xs, us), np.asarray(x_dot(xs, us)), rtol=1e-9, atol=1e-9)
+        x_next = model.evaluate_fd(xs, us)
+        assert x_next.shape == xs.shape
+        np.testing.assert_allclose(x_next[:-1], xs[1:], rtol=1e-9, atol=1e-9)  # no reset: step on step
+        # A trajectory (T, nx) with (T, nu), CasADi's own map (columns are points) and one point agree.
+        mapped = np.asarray(model.fc.map(len(xs))(xs[:, 0].T, us[:, 0].T)).T
+        np.testing.assert_allclose(model.evaluate_fc(xs[:, 0], us[:, 0]), mapped, rtol=1e-12)
+        np.testing.assert_allclose(model.evaluate_fc(xs[0, 0], us[0, 0]), mapped[0], rtol=1e-12)
+        # Many states with one input broadcast.
+        one_u = model.evaluate_fd(xs[:, 0], us[0, 0])
+        np.testing.assert_allclose(one_u[1], np.asarray(model.fd(xs[1, 0], us[0, 0])).ravel(), rtol=1e-12)
+
+
+def test_evaluate_fc_names_the_size_it_expects():
+    model = scg_jax.make("quadrotor_2d").symbolic_model(scg_jax.make("quadrotor_2d").default_params)
+    with pytest.raises(ValueError, match=r"evaluate_fc: u must have shape \(..., nu\) with nu = 2, got \(5, 4\)"):
+        model.evaluate_fc(np.zeros((5, 6)), np.zeros((5, 4)))
+    with pytest.raises(ValueError, match=r"evaluate_fd: x must have shape \(..., nx\) with nx = 6, got \(6, 5\)"):
+        model.evaluate_fd(np.zeros((6, 5)), np.zeros((5, 2)))
+    with pytest.raises(ValueError, match=r"evaluate_fc: the leading axes of x \(5,\) and u \(4,\) do not broadcast"):
+        model.evaluate_fc(np.zeros((5, 6)), np.zeros((4, 2)))

@@ -164,3 +164,26 @@ def test_non_physical_parameters_fail_at_make_naming_the_field(system, field, va
         scg_jax.make(system, physics={field: value})
     assert (err.value.path, err.value.reason) == (f"physics.{field}", reason)
     assert str(err.value) == f"physics.{field}: {reason}"
+
+
+def test_per_system_knowledge_comes_from_the_record():
+    from scg_jax.adapters import GYMNASIUM_IDS
+    from scg_jax.plotting import plane_indices
+    from scg_jax.render import VIEWS
+
+    assert GYMNASIUM_IDS == {
+        "cartpole": "scg_jax/CartPole-v0",
+        "quadrotor_1d": "scg_jax/Quadrotor1D-v0",
+        "quadrotor_2d": "scg_jax/Quadrotor2D-v0",
+        "quadrotor_3d": "scg_jax/Quadrotor3D-v0",
+    }
+    assert {name: system.path_plane for name, system in scg_jax.SYSTEMS.items()} == {
+        "cartpole": None,
+        "quadrotor_1d": None,
+        "quadrotor_2d": "xz",
+        "quadrotor_3d": "xz",
+    }
+    assert all(system.view in VIEWS for system in scg_jax.SYSTEMS.values())
+    assert plane_indices(scg_jax.make("cartpole", "tracking")) is None
+    assert plane_indices(scg_jax.make("quadrotor_2d", "tracking", trajectory={"plane": "xy"})) == ("xz", (0, 2))
+    assert plane_indices(scg_jax.make("quadrotor_3d", "tracking", trajectory={"plane": "zy"})) == ("zy", (4, 2))

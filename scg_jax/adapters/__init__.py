@@ -6,14 +6,11 @@ imports its library only when it is used.
 
 from __future__ import annotations
 
-# Gymnasium ids of the four systems. The environments truncate themselves at ``episode_len_sec``, so no
-# ``TimeLimit`` wrapper is registered (``max_episode_steps=None``).
-GYMNASIUM_IDS = {
-    "cartpole": "scg_jax/CartPole-v0",
-    "quadrotor_1d": "scg_jax/Quadrotor1D-v0",
-    "quadrotor_2d": "scg_jax/Quadrotor2D-v0",
-    "quadrotor_3d": "scg_jax/Quadrotor3D-v0",
-}
+from scg_jax.systems import SYSTEMS
+
+# Gymnasium ids, from each system's record (``System.gymnasium_id``). The environments truncate themselves at
+# ``episode_len_sec``, so no ``TimeLimit`` wrapper is registered (``max_episode_steps=None``).
+GYMNASIUM_IDS = {name: system.gymnasium_id for name, system in SYSTEMS.items()}
 
 
 def register_gymnasium_envs() -> None:

@@ -27,8 +27,9 @@ Pass ``wrap_env_fn=wrap_for_training`` to the trainers. brax's default ``envs.tr
 reset), so later episodes never draw a new initial state, new physical parameters or new disturbance phases,
 and its ``EpisodeWrapper`` reports a time-limit end as a termination (``truncation = 1 - done``) when the env
 itself truncates at the same step. ``wrap_for_training`` fixes both: ``EpisodeWrapper`` keeps the env's own
-truncation flag, ``EpisodicAutoResetWrapper`` calls the env's ``reset`` with a fresh key (split from
-``info["reset_rng"]``) wherever an episode ends.
+truncation flag, ``EpisodicAutoResetWrapper`` calls the env's ``reset`` wherever an episode ends, with the key
+``scg_jax.rollout.restart_done`` (the suite's one auto-reset) derives from the finished episode, so reset keys
+``scg_jax.rollout.initial_reset_keys(key, N)`` replay the episodes of ``scg_jax.make_rollout(...)(key, params)``.
 
 brax's ``randomization_fn`` (``(sys, rng) -> (batched sys, in_axes)``) becomes ``(params, rng) -> (batched
 EnvParams, in_axes)`` here: each parallel slot keeps its drawn ``EnvParams`` for the whole run (brax's semantics),
@@ -41,16 +42,29 @@ Versions: brax 0.14.2's trainers call ``jax.device_put_replicated``, removed in 
 from __future__ import annotations
 
 import contextlib
+import io
+import sys
 from collections.abc import Callable
 from typing import Any
 
 import jax
 import jax.numpy as jnp
-from brax.envs.base import Env as _BraxBaseEnv
-from brax.envs.base import State, Wrapper
-from brax.envs.wrappers.training import VmapWrapper
 
 from scg_jax.env import Env, EnvParams
+from scg_jax.rollout import restart_done
+
+# brax imports mujoco.mjx, whose optional GPU backend prints "Failed to import warp: ..." and "Failed to import
+# mujoco_warp: ..." to stdout when the warp package is absent (it is not needed here). Drop exactly those lines
+# and pass any other output of the import through.
+_WARP_MESSAGES = ("Failed to import warp:", "Failed to import mujoco_warp:")
+with contextlib.redirect_stdout(io.StringIO()) as _import_output:
+    from brax.envs.base import Env as _BraxBaseEnv
+    from brax.envs.base import State, Wrapper
+    from brax.envs.wrappers.training import VmapWrapper
+sys.stdout.write(
+    "".join(line for line in _import_output.getvalue().splitlines(True) if not line.startswith(_WARP_MESSAGES))
+)
+del _import_output
 
 __all__ = [
     "METRIC_NAMES",
@@ -270,27 +284,30 @@ class EpisodicAutoResetWrapper(Wrapper):
     """Auto-reset that starts every episode with a fresh ``reset``: new initial state, parameters and phases.
 
     Unlike brax's ``AutoResetWrapper`` (which restores the state cached at the first reset), a copy whose episode
-    ended gets ``env.reset(key)`` with a key split from ``info["reset_rng"]``, so the sequence of episodes is
-    still determined by the first reset key. ``reward``, ``done``, ``metrics`` and ``info`` describe the finished
-    step; ``obs`` and ``pipeline_state`` are those of the new episode (brax's convention).
+    ended gets a fresh ``reset`` through ``scg_jax.rollout.restart_done``, the suite's one auto-reset: the key is
+    ``next_reset_key`` of the finished episode's ``EnvState.key``, exactly as in ``make_rollout`` and the
+    Gymnasium vector env, so reset keys ``scg_jax.rollout.initial_reset_keys(key, N)`` give the episodes of
+    ``make_rollout(...)(key, params)``. ``reward``, ``done``, ``metrics`` and ``info`` describe the finished step;
+    ``obs`` and ``pipeline_state`` are those of the new episode (brax's convention).
     """
 
     def reset(self, rng: jax.Array) -> State:
-        keys = jax.vmap(jax.random.split)(rng)  # episode key and the carried reset key, one pair per copy
-        state = self.env.reset(keys[:, 0])
-        return state.replace(info={**state.info, "reset_rng": keys[:, 1]})
+        return self.env.reset(rng)
 
     def step(self, state: State, action: jax.Array) -> State:
         info = dict(state.info)
         if "steps" in info:
             info["steps"] = jnp.where(state.done > 0, jnp.zeros_like(info["steps"]), info["steps"])
         state = self.env.step(state.replace(done=jnp.zeros_like(state.done), info=info), action)
-        keys = jax.vmap(jax.random.split)(state.info["reset_rng"])
-        fresh = self.env.reset(keys[:, 0])
-        done = state.done
-        pipeline_state = jax.tree.map(lambda x, y: _where_done(done, x, y), fresh.pipeline_state, state.pipeline_state)
-        obs = jax.tree.map(lambda x, y: _where_done(done, x, y), fresh.obs, state.obs)
-        return state.replace(pipeline_state=pipeline_state, obs=obs, info={**state.info, "reset_rng": keys[:, 1]})
+
+        def reset(keys):
+            fresh = self.env.reset(keys)
+            return fresh.obs, fresh.pipeline_state
+
+        obs, pipeline_state = restart_done(
+            state.done > 0, state.pipeline_state.key, (state.obs, state.pipeline_state), reset
+        )
+        return state.replace(pipeline_state=pipeline_state, obs=obs)
 
 
 def wrap_for_training(

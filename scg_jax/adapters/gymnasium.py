@@ -20,6 +20,11 @@ Conventions:
   that says so, as the shipped ones do) the space is ``Box(u_low, u_high)``, the actuator limits of the nominal
   plant. Actions are not clipped here: the plant saturates the input (``info["u_cmd"]`` vs ``info["u"]``). An
   action of the wrong shape raises ``ValueError``.
+- **Rewards.** Without a config the adapters default to ``reward_type="exponential"``: ``exp(-c)`` in (0, 1] per
+  step, with ``c`` the quadratic cost of ``scg_jax.env``, and episodes that terminate when the state leaves the
+  failure bounds. A positive reward makes ending early cost return, so stable-baselines3's PPO with its default
+  settings learns on every id (see ``examples/sb3_ppo.py``); with ``reward_type="quadratic"`` (-c) and
+  termination, ending early raises the return. A config decides the reward type itself; a keyword overrides both.
 - **Observations.** ``float32`` of shape ``(observation_size,)`` in ``Box(-inf, inf)``: the state is unbounded
   for the cart-pole's velocities, an episode ends *outside* the failure bounds, and observation noise is
   unbounded, so no finite box would hold every observation.
@@ -30,9 +35,11 @@ Conventions:
   ``env.reset(jax.random.key(s), params)`` of the functional env. ``reset()`` continues the chain with the key
   ``scg_jax.rollout.next_reset_key(state.key)`` of the current episode (the one
   ``scg_jax.rollout.auto_reset_step`` uses), so a single env reset after every episode replays one copy of an
-  auto-resetting batched rollout, and the vector env's autoreset is ``auto_reset_step``'s. The vector env's
-  ``reset(seed=s)`` uses ``jax.random.split(jax.random.key(s), num_envs)``, one key per copy, or one
-  ``jax.random.key(s_i)`` per copy for a list of seeds.
+  auto-resetting batched rollout, and the vector env's autoreset is ``scg_jax.rollout.restart_done``, the one
+  ``auto_reset_step`` uses. The vector env's ``reset(seed=s)`` uses
+  ``scg_jax.rollout.initial_reset_keys(jax.random.key(s), num_envs)``, the reset keys of
+  ``make_rollout``'s ``rollout(jax.random.key(s), params)``, or one ``jax.random.key(s_i)`` per copy for a list
+  of seeds; so with ``autoreset_mode=SAME_STEP`` it replays that rollout's episodes.
 - **Info.** Every step: ``cost`` (1.0 at a step in violation of a constraint), ``constraint_values``,
   ``constraint_violation``, ``mse`` and the rest of the functional env's info (``quadratic_cost``,
   ``out_of_bounds``, ``goal_reached``, ``nonfinite``, ``step``, ``u_cmd``, ``u``, ``f_ext``) as numpy values in the
@@ -45,6 +52,7 @@ Conventions:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import threading
 from collections import OrderedDict
@@ -61,9 +69,13 @@ from gymnasium.vector.utils import batch_space
 
 from scg_jax.config import Config, EnvConfig, load_config, make_from_config
 from scg_jax.env import Env, EnvParams, EnvState, make
-from scg_jax.rollout import next_reset_key
+from scg_jax.rollout import initial_reset_keys, next_reset_key, restart_done, select_where
 
 DEFAULT_ACTION_MODE = "normalized"
+# A positive per-step reward, so that termination (falling over, leaving the bounds) costs the return of the
+# steps not taken: with the quadratic reward -c, ending an episode early *raises* the return, and standard RL
+# libraries with their default settings learn to crash (the paper's RL runs use the exponential reward too).
+DEFAULT_REWARD_TYPE = "exponential"
 RENDER_MODES = ("rgb_array",)
 _MAX_SEED = 2**31 - 1
 _CACHE_SIZE = 16
@@ -79,7 +91,7 @@ def _resolve_options(system, task, config, overrides, make_options) -> tuple[str
             raise ValueError("overrides: only allowed together with config=; pass make's options as keywords instead")
         if system is None:
             raise ValueError("system: required (cartpole, quadrotor_1d, quadrotor_2d or quadrotor_3d) unless config=")
-        options = {"action_mode": DEFAULT_ACTION_MODE, **make_options}
+        options = {"action_mode": DEFAULT_ACTION_MODE, "reward_type": DEFAULT_REWARD_TYPE, **make_options}
         return system, "stabilization" if task is None else task, options, None
     if isinstance(config, EnvConfig):
         config = Config(env=config)
@@ -173,11 +185,6 @@ def _physics_dict(physics) -> dict:
     return {field.name: getattr(physics, field.name) for field in dataclasses.fields(physics)}
 
 
-def _select(mask, new, old):
-    """``where(mask, new, old)`` with ``mask`` (N,) broadcast over the trailing axes."""
-    return jnp.where(mask.reshape(mask.shape + (1,) * (jnp.ndim(new) - 1)), new, old)
-
-
 # ============================================================================================== compiled
 class _Compiled:
     """One functional env, its default params and its jitted single and batched functions.
@@ -201,11 +208,7 @@ class _Compiled:
         self.next_reset_key = jax.jit(lambda packed: next_reset_key(self.state_packer.unpack(packed).key))
         self.vector_reset = jax.jit(jax.vmap(self._reset))
         self.vector_reset_masked = jax.jit(self._vector_reset_masked)
-        self.vector_steps = {
-            AutoresetMode.NEXT_STEP: jax.jit(self._vector_step_next),
-            AutoresetMode.SAME_STEP: jax.jit(self._vector_step_same),
-            AutoresetMode.DISABLED: jax.jit(self._vector_step_disabled),
-        }
+        self.vector_steps = {mode: jax.jit(functools.partial(self._vector_step, mode)) for mode in AutoresetMode}
         self.vector_next_reset_key = jax.jit(jax.vmap(next_reset_key))
         self._lock = threading.Lock()
         self._model = None
@@ -239,50 +242,34 @@ class _Compiled:
     # --------------------------------------------------------------------------------------- batched
     def _vector_reset_masked(self, keys, mask, state):
         fresh, host = jax.vmap(self._reset)(keys)
-        return jax.tree.map(lambda new, old: _select(mask, new, old), fresh, state), host
+        return select_where(mask, fresh, state), host
 
-    def _batched_step(self, state, action):
+    def _vector_step(self, mode: AutoresetMode, state, prev_done, action):
+        """One batched step; finished copies restart by ``scg_jax.rollout.restart_done`` (the suite's one
+        auto-reset), per ``mode``:
+
+        - NEXT_STEP: copies done at the previous step start a new episode instead of stepping (reward 0,
+          terminated and truncated False, info zeros);
+        - SAME_STEP: a finished copy restarts in the same call (as ``auto_reset_step``); the observation of the
+          finished step is ``info["final_obs"]``; reward, flags and info describe the finished step;
+        - DISABLED: no automatic reset; reset finished copies with ``reset(options={"reset_mask": done})``.
+        """
         out = jax.vmap(self.env.step, in_axes=(0, 0, None))(state, action, self.params)
-        return out, {**out.info, "cost": out.cost}
-
-    def _reset_where(self, done, state_keys, obs, state):
-        """Fresh episodes (keys from ``state_keys``, as ``auto_reset_step``) where ``done``; the reset is skipped
-        when no copy is done."""
-
-        def reset_all(_):
-            keys = jax.vmap(next_reset_key)(state_keys)
-            return jax.vmap(self.env.reset, in_axes=(0, None))(keys, self.params)
-
-        fresh_obs, fresh_state = jax.lax.cond(jnp.any(done), reset_all, lambda _: (obs, state), None)
-        return _select(done, fresh_obs, obs), jax.tree.map(lambda new, old: _select(done, new, old), fresh_state, state)
-
-    def _vector_step_next(self, state, prev_done, action):
-        """NEXT_STEP: copies done at the previous step start a new episode instead of stepping (reward 0,
-        terminated and truncated False, info zeros)."""
-        out, info = self._batched_step(state, action)
-        obs, next_state = self._reset_where(prev_done, state.key, out.obs, out.state)
-        keep = ~prev_done
-        terminated, truncated = out.terminated & keep, out.truncated & keep
-        reward = jnp.where(keep, out.reward, jnp.zeros_like(out.reward))
-        info = jax.tree.map(lambda v: _select(keep, v, jnp.zeros_like(v)), info)
-        host = (obs.astype(jnp.float32), reward, terminated, truncated, info)
-        return next_state, terminated | truncated, host
-
-    def _vector_step_same(self, state, prev_done, action):
-        """SAME_STEP: a finished copy restarts in the same call (``auto_reset_step``); the observation of the
-        finished step is ``info["final_obs"]``; reward, flags and info describe the finished step."""
-        out, info = self._batched_step(state, action)
-        done = out.terminated | out.truncated
-        obs, next_state = self._reset_where(done, out.state.key, out.obs, out.state)
-        final_obs = out.obs.astype(jnp.float32)
-        host = (obs.astype(jnp.float32), out.reward, out.terminated, out.truncated, {**info, "final_obs": final_obs})
-        return next_state, done, host
-
-    def _vector_step_disabled(self, state, prev_done, action):
-        """DISABLED: no automatic reset; reset finished copies with ``reset(options={"reset_mask": done})``."""
-        out, info = self._batched_step(state, action)
-        done = out.terminated | out.truncated
-        return out.state, done, (out.obs.astype(jnp.float32), out.reward, out.terminated, out.truncated, info)
+        obs, next_state, reward, terminated, truncated = out.obs, out.state, out.reward, out.terminated, out.truncated
+        info = {**out.info, "cost": out.cost}
+        if mode != AutoresetMode.DISABLED:
+            reset = jax.vmap(self.env.reset, in_axes=(0, None))
+            # The key is the same before and after the step (EnvState.key is the episode's key).
+            done = prev_done if mode == AutoresetMode.NEXT_STEP else terminated | truncated
+            obs, next_state = restart_done(done, state.key, (obs, next_state), lambda k: reset(k, self.params), True)
+        if mode == AutoresetMode.NEXT_STEP:
+            keep = ~prev_done
+            terminated, truncated = terminated & keep, truncated & keep
+            reward = jnp.where(keep, reward, jnp.zeros_like(reward))
+            info = jax.tree.map(lambda v: select_where(keep, v, jnp.zeros_like(v)), info)
+        elif mode == AutoresetMode.SAME_STEP:
+            info["final_obs"] = out.obs.astype(jnp.float32)
+        return next_state, terminated | truncated, (obs.astype(jnp.float32), reward, terminated, truncated, info)
 
 
 _CACHE: OrderedDict = OrderedDict()
@@ -358,7 +345,8 @@ class ScgGymEnv(gymnasium.Env):
             it decides every option, ``action_mode`` included.
         overrides: ``"env.key=value"`` strings applied to ``config``.
         render_width, render_height: frame size of ``render()``, pixels.
-        **make_options: options of ``scg_jax.make``; ``action_mode`` defaults to ``"normalized"`` here.
+        **make_options: options of ``scg_jax.make``; ``action_mode`` defaults to ``"normalized"`` and
+            ``reward_type`` to ``"exponential"`` here (``make``'s defaults are physical and quadratic).
 
     Attributes:
         functional_env: the ``scg_jax.Env``. params: its ``EnvParams`` (fixed per instance).
@@ -575,7 +563,7 @@ class ScgVectorEnv(VectorEnv):
             return jax.random.split(jax.random.key(int(self._np_random.integers(_MAX_SEED))), n)
         if isinstance(seed, int | np.integer) and not isinstance(seed, bool):
             self._np_random, self._np_random_seed = seeding.np_random(int(seed))
-            return jax.random.split(jax.random.key(int(seed)), n)
+            return initial_reset_keys(jax.random.key(int(seed)), n)
         seeds = list(seed)
         if len(seeds) != n or not all(isinstance(s, int | np.integer) and s >= 0 for s in seeds):
             raise ValueError(f"seed: expected None, a non-negative integer or {n} non-negative integers, got {seed!r}")
@@ -584,8 +572,9 @@ class ScgVectorEnv(VectorEnv):
     def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None):
         """Reset every copy, or those in ``options["reset_mask"]`` ((N,) bool).
 
-        ``seed``: an integer (copy i starts from ``jax.random.split(jax.random.key(seed), N)[i]``), a list of N
-        integers (copy i from ``jax.random.key(seed[i])``) or ``None`` (continue each copy's key chain).
+        ``seed``: an integer (copy i starts from ``scg_jax.rollout.initial_reset_keys(jax.random.key(seed), N)[i]``,
+        as copy i of ``make_rollout``'s ``rollout(jax.random.key(seed), params)``), a list of N integers (copy i
+        from ``jax.random.key(seed[i])``) or ``None`` (continue each copy's key chain).
         """
         options = dict(options or {})
         mask = options.pop("reset_mask", None)
@@ -672,6 +661,7 @@ class SafetyGymnasiumVectorWrapper(VectorWrapper):
 
 __all__ = [
     "DEFAULT_ACTION_MODE",
+    "DEFAULT_REWARD_TYPE",
     "SafetyGymnasiumVectorWrapper",
     "SafetyGymnasiumWrapper",
     "ScgGymEnv",

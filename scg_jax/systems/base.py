@@ -40,6 +40,10 @@ class System:
         equilibrium_input: ``equilibrium_input(params) -> u_eq`` (nu,), the input holding the goal (hover).
         action_to_input: ``action_to_input(action, params) -> u``, normalised RL action to physical input.
         input_to_action: the inverse of ``action_to_input``.
+        gymnasium_id: the id ``import scg_jax`` registers with Gymnasium, e.g. ``"scg_jax/CartPole-v0"``.
+        view: how ``scg_jax.render`` draws the system: ``"cartpole"`` (cart on a track, side view),
+            ``"quadrotor_1d"`` (body at height z, side view), ``"quadrotor_2d"`` (x-z side view) or
+            ``"quadrotor_3d"`` (perspective); a new system reuses one of these views or adds one there.
         validate_params: raises ValueError naming the field when a parameter value is not physical.
         inertial_fields: the ``Params`` fields a prior model scales by default (masses, lengths, inertias).
     """
@@ -67,6 +71,8 @@ class System:
     equilibrium_input: Callable[[Any], Any]
     action_to_input: Callable[[Any, Any], Any]
     input_to_action: Callable[[Any, Any], Any]
+    gymnasium_id: str
+    view: str
     validate_params: Callable[[Any], None]
     inertial_fields: tuple[str, ...]
 
@@ -77,6 +83,12 @@ class System:
     @property
     def nu(self) -> int:
         return len(self.input_names)
+
+    @property
+    def path_plane(self) -> str | None:
+        """The two-letter plane a plot of the position path is drawn in (the default trajectory plane), or
+        ``None`` for systems whose position has fewer than two world axes (nothing to draw a path of)."""
+        return self.default_plane if len(self.tracking_axes) >= 2 else None
 
 
 def require_positive(params, names, system: str) -> None:

@@ -133,6 +133,8 @@ SYSTEM = System(
     equilibrium_input=equilibrium_input,
     action_to_input=action_to_input,
     input_to_action=input_to_action,
+    gymnasium_id="scg_jax/CartPole-v0",
+    view="cartpole",
     validate_params=validate_params,
     inertial_fields=("cart_mass", "pole_mass", "pole_half_length"),
 )

@@ -130,6 +130,8 @@ SYSTEM = System(
     equilibrium_input=_thrust.equilibrium_input,
     action_to_input=_thrust.action_to_input,
     input_to_action=_thrust.input_to_action,
+    gymnasium_id="scg_jax/Quadrotor3D-v0",
+    view="quadrotor_3d",
     validate_params=lambda params: cf.validate_params(params, "quadrotor_3d"),
     inertial_fields=("mass", "ixx", "iyy", "izz"),
 )
