@@ -443,6 +443,8 @@ def _build_controller(spec: str, env, params, cfg, prior_scale: float):
         except ValueError as error:
             raise _UsageError(str(error)) from None
     path = Path(spec)
+    if path.is_dir() and _is_gp_mpc_run(path):
+        return _load_gp_mpc_run(path, env, params, cfg, prior_scale)
     if path.is_dir():
         from algorithms.rl.policy import load_policy
 
@@ -456,6 +458,32 @@ def _build_controller(spec: str, env, params, cfg, prior_scale: float):
         f"argument --controller: {spec!r} is neither a controller name ({', '.join(CONTROLLERS)}) nor a policy "
         "folder written by scg-jax train"
     )
+
+
+def _is_gp_mpc_run(path: Path) -> bool:
+    from algorithms.gp_mpc.run import is_run
+
+    return is_run(path)
+
+
+def _load_gp_mpc_run(path: Path, env, params, cfg, prior_scale: float):
+    """The GP-MPC learned in ``path``, on the prior it was learned with (``--prior-scale`` must agree or stay 1)."""
+    import json
+
+    from algorithms.gp_mpc.run import RUN_NAME, load_run
+    from scg_jax.env import prior_params
+
+    saved_scale = float(json.loads((path / f"{RUN_NAME}.json").read_text())["prior_scale"])
+    if prior_scale not in (1.0, saved_scale):
+        raise _UsageError(
+            f"argument --prior-scale: {path} learned its GP on a prior of scale {saved_scale:g}; leave --prior-scale "
+            f"at 1 or give {saved_scale:g}"
+        )
+    prior = params if saved_scale == 1.0 else prior_params(env, params, saved_scale)
+    try:
+        return load_run(path, env, prior, cfg.controllers.get("gp_mpc"))
+    except (ValueError, OSError) as error:
+        raise _UsageError(f"argument --controller: {error}") from None
 
 
 def _evaluate(controller, env, params, args, console):
@@ -605,7 +633,7 @@ def _run_compare(args: argparse.Namespace, console) -> int:
 
 
 # ----------------------------------------------------------------------------------------------- train
-LEARNERS = ("ppo", "sac")
+LEARNERS = ("ppo", "sac", "gp_mpc")
 
 
 def _positive_seconds(text: str) -> float:
@@ -660,6 +688,12 @@ def _add_train_parser(subparsers) -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--eval-episodes", type=_positive_int, default=16, help="episodes of the final evaluation (default: 16)"
+    )
+    parser.add_argument(
+        "--prior-scale",
+        type=float,
+        default=1.0,
+        help="gp_mpc: the prior model has every inertial parameter times this factor (default: 1)",
     )
     parser.set_defaults(_train_parser=parser)
     return parser
@@ -720,6 +754,11 @@ def _check_train_folder(args: argparse.Namespace) -> None:
 
 
 def _run_train(args: argparse.Namespace, console) -> int:
+    _output(args.out, "dir")  # before any work: a file in the way or an unwritable location
+    if args.algo == "gp_mpc":
+        return _run_train_gp_mpc(args, console)
+    if args.prior_scale != 1.0:
+        raise _UsageError(f"argument --prior-scale: only gp_mpc learns on a prior model; {args.algo} has none")
     import jax
 
     from algorithms.base import parse_options
@@ -802,6 +841,86 @@ def _run_train(args: argparse.Namespace, console) -> int:
     )
     console.print(_summary_table(title, {args.algo: evaluation.summary}))
     console.print(f"wrote {args.out}/policy.msgpack, progress.csv, learning_curve.png, metrics.json")
+    return 0
+
+
+def _run_train_gp_mpc(args: argparse.Namespace, console) -> int:
+    """``train --algo gp_mpc``: the learning loop of ``algorithms.gp_mpc.controller.learn`` with the config's
+    ``controllers.gp_mpc`` options, then a final evaluation; writes gp_mpc.json/npz, the learning curve and
+    metrics.json."""
+    import jax
+
+    from algorithms.base import parse_options
+    from algorithms.evaluation import evaluate, evaluation_record
+    from algorithms.gp_mpc.controller import PATH, Options, learn
+    from algorithms.gp_mpc.run import RUN_NAME, save_run, write_learning_curve
+    from algorithms.rl.training import existing_run_files, rmse_label
+    from scg_jax.config import dump_config
+    from scg_jax.env import prior_params
+
+    env, params, cfg = _make_env(args)
+    if not (np.isfinite(args.prior_scale) and args.prior_scale > 0):
+        raise _UsageError(f"argument --prior-scale: must be a positive number, got {args.prior_scale!r}")
+    options = {**dict(cfg.controllers.get("gp_mpc") or {}), "seed": args.seed}
+    try:
+        opts = parse_options(Options, options, PATH)
+    except ValueError as error:
+        raise _UsageError(str(error)) from None
+    if opts.rounds < 1:
+        raise _UsageError(f"{PATH}.rounds: train needs at least one round, got {opts.rounds}")
+    if args.resume:
+        raise _UsageError(
+            "argument --resume: a gp_mpc run is not resumable (each round refits the GP); use --overwrite"
+        )
+    others = existing_run_files(args.out)
+    mine = [
+        name for name in (f"{RUN_NAME}.json", f"{RUN_NAME}.npz", "learning_curve.csv") if (args.out / name).exists()
+    ]
+    if (others or mine) and not args.overwrite:
+        what = f"a training run of another algorithm ({', '.join(others)})" if others and not mine else "a run"
+        raise _UsageError(f"argument --out: {args.out} already holds {what}; pass --overwrite to replace it")
+    prior = params if args.prior_scale == 1.0 else prior_params(env, params, args.prior_scale)
+    console.print(
+        f"gp_mpc on the {env.system.name} ({env.task}), prior scale {args.prior_scale:g}: {opts.rounds} rounds of "
+        f"{opts.train_episodes} episodes, each evaluated on {opts.eval_episodes}",
+        highlight=False,
+    )
+
+    def report(entry):
+        console.print(
+            f"round {entry['round']}: {entry['data_seconds']:.1f} s of data, RMSE {entry['rmse']:.4f} "
+            f"(std {entry['rmse_std']:.4f}), failure rate {entry['failure_rate']:.2f}, "
+            f"fit {entry['fit_s']:.1f} s, evaluation {entry['eval_s']:.1f} s",
+            highlight=False,
+        )
+
+    try:
+        result = learn(env, params, prior, opts, progress=report)
+    except KeyboardInterrupt:
+        console.print("interrupted; nothing saved (a gp_mpc run is written when its rounds finish)", markup=False)
+        return 130
+    extra = {"config": dump_config(cfg), "overrides": list(args.set)}
+    save_run(args.out, result, opts, system=env.system.name, prior_scale=args.prior_scale, extra=extra)
+    write_learning_curve(args.out, result.history, rmse_label(env, params))
+    evaluation = evaluate(env, params, result.controller, jax.random.key(args.seed + 1), args.eval_episodes)
+    record = {
+        "command": "train",
+        "algo": "gp_mpc",
+        "system": env.system.name,
+        "task": env.task,
+        "config_file": None if args.config is None else str(args.config),
+        "config": dump_config(cfg),
+        "overrides": list(args.set),
+        "seed": args.seed,
+        "prior_scale": args.prior_scale,
+        "options": _jsonable(dataclasses.asdict(opts)),
+        "history": _jsonable(result.history),
+        "evaluation": evaluation_record(evaluation),
+    }
+    write_json(args.out / "metrics.json", record)
+    title = f"{env.system.name} {env.task} | gp_mpc after {opts.rounds} rounds | {args.eval_episodes} episodes"
+    console.print(_summary_table(title, {"gp_mpc": evaluation.summary}))
+    console.print(f"wrote {args.out}/{RUN_NAME}.json, {RUN_NAME}.npz, learning_curve.csv/png, metrics.json")
     return 0
 
 

@@ -3,6 +3,7 @@
 import json
 import shlex
 
+import numpy as np
 import pytest
 
 import algorithms.rl.training as training
@@ -115,3 +116,43 @@ def test_train_logs_progress_lines_and_extends_a_finished_run(tmp_path, capsys):
     assert main([*common, *longer, "--set", "env.ctrl_freq=25", "--out", str(out), "--resume"]) == 2
     message = _error(capsys)
     assert "was trained on another env: env.ctrl_freq: 50 in the checkpoint, 25 now." in message
+
+
+# GP-MPC on 2-s cart-pole episodes at 10 Hz: one round of 2 episodes, a small GP, a short horizon.
+_TINY_GP_MPC = [
+    "--set", "env.ctrl_freq=10", "--set", "env.episode_len_sec=2", "--set", "env.disturbances={}",
+    "--set", "controllers.gp_mpc={horizon: 8, rounds: 1, train_episodes: 2, eval_episodes: 2, num_inducing: 10, "
+    "gp_iterations: 10, max_fit_points: 40}",
+]  # fmt: skip
+
+
+@pytest.mark.slow
+def test_train_gp_mpc_writes_a_run_that_eval_uses(tmp_path, capsys):
+    out = tmp_path / "gp"
+    argv = ["train", "--algo", "gp_mpc", *_ENV, *_TINY_GP_MPC, "--prior-scale", "1.5", "--eval-episodes", "2"]
+    assert main([*argv, "--out", str(out)]) == 0
+    for name in ("gp_mpc.json", "gp_mpc.npz", "learning_curve.csv", "learning_curve.png", "metrics.json"):
+        assert (out / name).is_file(), name
+    record = json.loads((out / "metrics.json").read_text())
+    assert record["algo"] == "gp_mpc" and record["prior_scale"] == 1.5
+    assert [h["round"] for h in record["history"]] == [0, 1] and record["history"][1]["data_seconds"] == 4.0
+    assert main(["eval", *_ENV, *_TINY_GP_MPC, "--controller", str(out), "--episodes", "2",
+                 "--out", str(tmp_path / "eval.json")]) == 0  # fmt: skip
+    evaluated = json.loads((tmp_path / "eval.json").read_text())
+    assert evaluated["controller"] == "gp_mpc" and np.isfinite(evaluated["rmse"])
+    capsys.readouterr()
+    assert main([*argv, "--out", str(out)]) == 2
+    assert "already holds a run; pass --overwrite to replace it" in _error(capsys)
+    assert main([*argv, "--out", str(out), "--resume"]) == 2
+    assert "a gp_mpc run is not resumable" in _error(capsys)
+    assert main(["eval", *_ENV, "--controller", str(out), "--prior-scale", "2", "--out", str(tmp_path / "e.json")]) == 2
+    assert "learned its GP on a prior of scale 1.5" in _error(capsys)
+
+
+def test_train_gp_mpc_refuses_a_folder_of_another_algorithm_and_ppo_a_prior_scale(tmp_path, capsys):
+    out = tmp_path / "run"
+    _fake_run(out)
+    assert main(["train", "--algo", "gp_mpc", *_ENV, "--out", str(out)]) == 2
+    assert "already holds a training run of another algorithm (checkpoint.json, progress.csv)" in _error(capsys)
+    assert main(["train", "--algo", "ppo", *_ENV, "--prior-scale", "1.5", "--out", str(tmp_path / "p")]) == 2
+    assert "only gp_mpc learns on a prior model; ppo has none" in _error(capsys)
