@@ -135,4 +135,5 @@ SYSTEM = System(
     input_to_action=input_to_action,
     validate_params=validate_params,
     inertial_fields=("cart_mass", "pole_mass", "pole_half_length"),
+    wrench_allocation=None,
 )
