@@ -20,9 +20,10 @@ Structure (one control step, per copy, all in SI units):
    to body axes by the Euler-rate-to-body-rate matrix, and the torque ``M = J alpha + w x (J w)`` cancels the
    gyroscopic term with the prior inertia ``J`` (N m).
 5. **Mixer**: the motor thrusts solve ``[T, M] = A u`` where ``A`` (``allocation_matrix``) is read off the
-   system's own ``dynamics`` with the prior parameters (how a unit of each input changes the vertical
-   acceleration times the mass and the angular accelerations times the inertia, at a level hover state), so no
-   geometry is retyped here. Each motor is then clipped to ``env.input_bounds(prior_params.physics)``.
+   system's own ``dynamics`` with the prior parameters at the rows its record names (``System.wrench_allocation``):
+   how a unit of each input changes the vertical acceleration times the mass and the angular accelerations times
+   the inertia, at a level hover state. So no geometry is retyped here. Each motor is then clipped to
+   ``env.input_bounds(prior_params.physics)``.
 
 Gains are in physical units and independent of the vehicle's mass (they are accelerations per error): position
 ``kp`` 1/s^2, ``ki`` 1/s^3, ``kd`` 1/s; attitude ``kp`` 1/s^2, ``ki`` 1/s^3, ``kd`` 1/s. The defaults put the
@@ -49,16 +50,8 @@ from scg_jax.backends import jax_backend
 
 SUPPORTED_SYSTEMS = ("quadrotor_1d", "quadrotor_2d", "quadrotor_3d")
 
-# Per system: the index of the vertical acceleration in x_dot, the indices of the body angular accelerations
-# (roll, pitch, yaw order, only those the model has) and the matching prior inertia fields. Together they turn
-# the dynamics' input Jacobian into the wrench allocation [T, M] = A u.
-_WRENCH_ROWS = {
-    "quadrotor_1d": (1, (), ()),
-    "quadrotor_2d": (3, (5,), ("iyy",)),
-    "quadrotor_3d": (5, (9, 10, 11), ("ixx", "iyy", "izz")),
-}
-# Which body axes (0 roll, 1 pitch, 2 yaw) the model's torques act about.
-_TORQUE_AXES = {"quadrotor_1d": (), "quadrotor_2d": (1,), "quadrotor_3d": (0, 1, 2)}
+# Where the thrust and the torques show in each system's dynamics (the rows of the wrench allocation) lives in the
+# system's record, ``System.wrench_allocation`` (scg_jax/systems/); this module only reads it.
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,7 +102,7 @@ class PIDState(NamedTuple):
 
 
 def _check_system(env) -> None:
-    if env.system.name not in SUPPORTED_SYSTEMS:
+    if env.system.name not in SUPPORTED_SYSTEMS or env.system.wrench_allocation is None:
         raise ValueError(
             f"controllers.pid: system {env.system.name!r} is not supported; supported systems are "
             f"{', '.join(SUPPORTED_SYSTEMS)}"
@@ -131,7 +124,9 @@ def allocation_matrix(env, physics):
         (2D: pitch; 3D: roll, pitch, yaw). ``u`` in N.
     """
     _check_system(env)
-    z_row, torque_rows, inertia_fields = _WRENCH_ROWS[env.system.name]
+    allocation = env.system.wrench_allocation
+    z_row, torque_rows = allocation.vertical_acceleration, allocation.angular_accelerations
+    inertia_fields = allocation.inertia_fields
     nx, nu = env.nx, env.nu
     dtype = jnp.result_type(float)
     x_level = jnp.zeros(nx, dtype)
@@ -194,7 +189,7 @@ def make_pid(env, prior_params, options=None) -> JaxController:
     mixer = motor_mixer(env, physics)
     u_low, u_high = env.input_bounds(physics)
     inertia = jnp.stack([jnp.asarray(physics.ixx), jnp.asarray(physics.iyy), jnp.asarray(physics.izz)])
-    torque_axes = np.asarray(_TORQUE_AXES[name], dtype=int)
+    torque_axes = np.asarray(env.system.wrench_allocation.torque_axes, dtype=int)
 
     kp, ki, kd = (jnp.asarray(opts.vector(f"position_{g}")) for g in ("kp", "ki", "kd"))
     i_limit = jnp.asarray(opts.vector("integral_limit"))

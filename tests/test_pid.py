@@ -98,6 +98,41 @@ def test_pid_tracks_a_figure8(system, plane):
     assert hover["failure_rate"] == 1.0 and hover["rmse"] > 10 * pid["rmse"]
 
 
+@pytest.mark.parametrize("system", ["quadrotor_2d", "quadrotor_3d"])
+def test_pid_stabilises_hover_from_tilted_displaced_starts(system):
+    # The original suite's PID example is stabilisation: hover at 1 m from a start up to 10 cm away per axis and
+    # 0.1 rad tilted (2 cm/s, 0.02 rad/s on the rates), for 3 s.
+    nominal = scg_jax.make(system)
+    nx = nominal.nx
+    goal = np.zeros(nx)
+    positions = [index for _, index, _ in nominal.system.tracking_axes]
+    goal[positions[-1]] = 1.0  # z
+    spread = np.where(np.asarray(nominal.system.velocity_mask) > 0, 0.02, 0.1)
+    env = scg_jax.make(
+        system,
+        "stabilization",
+        episode_len_sec=3.0,
+        goal=goal.tolist(),
+        init_state={"type": "uniform", "low": list(goal - spread), "high": list(goal + spread)},
+        constraints=[{"type": "default", "on": "input"}, {"type": "default", "on": "state"}],
+    )
+    params = env.default_params
+    key = jax.random.key(0)
+    pid = evaluate(env, params, make_pid(env, params), key, EPISODES, measure_time=False)
+    hover = _summary(env, params, _hover(env, params))
+    x = np.asarray(pid.trajectory["x"], dtype=np.float64)
+    initial = np.linalg.norm(x[0][:, positions] - goal[positions], axis=-1)
+    final = np.linalg.norm(x[-1][:, positions] - goal[positions], axis=-1)
+    assert pid.summary["failure_rate"] == 0.0 and pid.summary["length"] == env.num_steps
+    # The position loop (2.8 rad/s, damping 0.9) removes most of the offset within a second; what is left after 3 s
+    # is the slow integral mode (-0.30 rad/s, see the module docstring of algorithms.pid): measured 1.7 cm at most
+    # on the 3D quadrotor from 15 cm, 1.4 cm on the 2D one from 12 cm; a ninth of the initial offset on average.
+    assert np.all(final < 0.03) and np.mean(final) < 0.25 * np.mean(initial)
+    # Open-loop hover thrust from a tilted start drifts away (3 of the 4 episodes crash within the 3 s; RMSE 0.83
+    # and 1.02 against the PID's 0.041 and 0.048).
+    assert hover["failure_rate"] >= 0.5 and hover["rmse"] > 10 * pid.summary["rmse"]
+
+
 def test_feedforward_of_the_reference_acceleration_reduces_the_lag():
     env = scg_jax.make(
         "quadrotor_2d",

@@ -16,6 +16,29 @@ from scg_jax.validation import FieldError
 
 
 @dataclasses.dataclass(frozen=True)
+class WrenchAllocation:
+    """Where a multirotor's collective thrust and body torques enter its ``dynamics``.
+
+    The dynamics are affine in the motor thrusts ``u``; at a level state with zero rates, the mass times the
+    vertical acceleration is the collective thrust and each body angular acceleration times its moment of inertia
+    the torque about that axis. These indices turn the input Jacobian of ``dynamics`` into the allocation
+    ``[T, M...] = A u`` (``algorithms.pid.allocation_matrix``), so no geometry is retyped outside the system.
+
+    Attributes:
+        vertical_acceleration: index in ``x_dot`` of the vertical acceleration (m/s^2).
+        angular_accelerations: indices in ``x_dot`` of the body angular accelerations (rad/s^2) the model has, in
+            roll, pitch, yaw order.
+        inertia_fields: the ``Params`` fields of the matching moments of inertia (kg m^2).
+        torque_axes: the body axes of those torques (0 roll, 1 pitch, 2 yaw).
+    """
+
+    vertical_acceleration: int
+    angular_accelerations: tuple[int, ...]
+    inertia_fields: tuple[str, ...]
+    torque_axes: tuple[int, ...]
+
+
+@dataclasses.dataclass(frozen=True)
 class System:
     """Layout, defaults and conversions of one system.
 
@@ -46,6 +69,9 @@ class System:
             ``"quadrotor_3d"`` (perspective); a new system reuses one of these views or adds one there.
         validate_params: raises ValueError naming the field when a parameter value is not physical.
         inertial_fields: the ``Params`` fields a prior model scales by default (masses, lengths, inertias).
+        wrench_allocation: where the collective thrust and the body torques show in ``dynamics`` (a
+            ``WrenchAllocation``), from which thrust/torque mixers (the PID's) are read off; ``None`` for a system
+            without motors that make a wrench (the cart-pole).
     """
 
     name: str
@@ -75,6 +101,7 @@ class System:
     view: str
     validate_params: Callable[[Any], None]
     inertial_fields: tuple[str, ...]
+    wrench_allocation: WrenchAllocation | None
 
     @property
     def nx(self) -> int:

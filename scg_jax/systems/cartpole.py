@@ -137,4 +137,5 @@ SYSTEM = System(
     view="cartpole",
     validate_params=validate_params,
     inertial_fields=("cart_mass", "pole_mass", "pole_half_length"),
+    wrench_allocation=None,
 )

@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from scg_jax.systems import crazyflie as cf
-from scg_jax.systems.base import System
+from scg_jax.systems.base import System, WrenchAllocation
 
 Params = cf.Params
 _thrust = cf.ThrustGroups(nu=1, motors_per_input=4)
@@ -73,4 +73,7 @@ SYSTEM = System(
     view="quadrotor_1d",
     validate_params=lambda params: cf.validate_params(params, "quadrotor_1d"),
     inertial_fields=("mass",),
+    wrench_allocation=WrenchAllocation(
+        vertical_acceleration=1, angular_accelerations=(), inertia_fields=(), torque_axes=()
+    ),
 )

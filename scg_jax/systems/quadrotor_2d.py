@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 from scg_jax.systems import crazyflie as cf
-from scg_jax.systems.base import System
+from scg_jax.systems.base import System, WrenchAllocation
 
 Params = cf.Params
 _thrust = cf.ThrustGroups(nu=2, motors_per_input=2)
@@ -88,4 +88,8 @@ SYSTEM = System(
     view="quadrotor_2d",
     validate_params=lambda params: cf.validate_params(params, "quadrotor_2d"),
     inertial_fields=("mass", "iyy"),
+    # z_dd is x_dot[3], theta_dd (pitch) x_dot[5].
+    wrench_allocation=WrenchAllocation(
+        vertical_acceleration=3, angular_accelerations=(5,), inertia_fields=("iyy",), torque_axes=(1,)
+    ),
 )

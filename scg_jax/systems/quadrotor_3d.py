@@ -37,7 +37,7 @@ from __future__ import annotations
 import numpy as np
 
 from scg_jax.systems import crazyflie as cf
-from scg_jax.systems.base import System
+from scg_jax.systems.base import System, WrenchAllocation
 
 Params = cf.Params
 _thrust = cf.ThrustGroups(nu=4, motors_per_input=1)
@@ -134,4 +134,11 @@ SYSTEM = System(
     view="quadrotor_3d",
     validate_params=lambda params: cf.validate_params(params, "quadrotor_3d"),
     inertial_fields=("mass", "ixx", "iyy", "izz"),
+    # z_dd is x_dot[5]; the body angular accelerations p_dot, q_dot, r_dot are x_dot[9:12].
+    wrench_allocation=WrenchAllocation(
+        vertical_acceleration=5,
+        angular_accelerations=(9, 10, 11),
+        inertia_fields=("ixx", "iyy", "izz"),
+        torque_axes=(0, 1, 2),
+    ),
 )
