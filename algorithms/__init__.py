@@ -1,4 +1,4 @@
-"""Controllers and learners for ``scg_jax`` environments, all behind the protocol in ``algorithms.base``.
+"""Controllers and learners for ``scg_jax`` environments, all behind the protocol in ``scg_algorithms.base``.
 
 ``make_controller(name, env, prior_params, options)`` builds any registered controller by name; the modules are
 imported on first use, so importing this package stays cheap.
@@ -11,13 +11,13 @@ from collections.abc import Mapping
 
 # name -> "module:factory"; every factory is ``factory(env, prior_params, options=None) -> Controller``.
 CONTROLLERS = {
-    "pid": "algorithms.pid:make_pid",
-    "lqr": "algorithms.lqr:make_lqr",
-    "ilqr": "algorithms.ilqr:make_ilqr",
-    "linear_mpc": "algorithms.mpc.linear:make_linear_mpc",
-    "linear_mpc_casadi": "algorithms.mpc.linear:make_linear_mpc_casadi",
-    "nonlinear_mpc": "algorithms.mpc.nonlinear:make_nonlinear_mpc",
-    "gp_mpc": "algorithms.gp_mpc.controller:make_gp_mpc",
+    "pid": "scg_algorithms.pid:make_pid",
+    "lqr": "scg_algorithms.lqr:make_lqr",
+    "ilqr": "scg_algorithms.ilqr:make_ilqr",
+    "linear_mpc": "scg_algorithms.mpc.linear:make_linear_mpc",
+    "linear_mpc_casadi": "scg_algorithms.mpc.linear:make_linear_mpc_casadi",
+    "nonlinear_mpc": "scg_algorithms.mpc.nonlinear:make_nonlinear_mpc",
+    "gp_mpc": "scg_algorithms.gp_mpc.controller:make_gp_mpc",
 }
 
 

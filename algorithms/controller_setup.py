@@ -1,7 +1,7 @@
 """The shared set-up of the model-based controllers (LQR, iLQR, linear MPC, nonlinear MPC).
 
 Every model-based controller builds the same four things from ``(env, prior_params, options)``, and builds them
-here, so that ``algorithms.evaluation.compare`` scores controllers that optimise the same cost about the same
+here, so that ``scg_algorithms.evaluation.compare`` scores controllers that optimise the same cost about the same
 point of the same model:
 
 - **Weights** (``cost_weights``): the prior's full ``Q`` (nx, nx) and ``R`` (nu, nu), or a diagonal given by the
@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from algorithms.base import weight_diagonal
+from scg_algorithms.base import weight_diagonal
 
 LINEARIZE_ABOUT = ("auto", "goal", "reference")
 TERMINAL_WEIGHTS = ("dare", "stage")
@@ -157,7 +157,7 @@ def goal_lqr(
     Raises:
         ValueError: ``"<path>.<field>: ... no stabilising solution ..."`` when the Riccati equation has none.
     """
-    from algorithms.lqr import discrete_lqr_gain  # here, not at the top: algorithms.lqr builds on this module
+    from scg_algorithms.lqr import discrete_lqr_gain  # here, not at the top: scg_algorithms.lqr builds on this module
 
     goal = np.asarray(prior_params.goal, dtype=np.float64).reshape(env.nx)
     lin = model.linearize(goal, equilibrium_input(env, prior_params))

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from algorithms.base import Reference
+from scg_algorithms.base import Reference
 from scg_jax import metrics as metrics_lib
 
 # The keys of the JSON the CLI writes, in the paper's order: summary name -> metrics.summarize name.
@@ -92,7 +92,7 @@ def _params_axis(batched_params: bool):
 def _check(env, params, controller, num_episodes) -> int:
     for name in ("name", "is_jax", "reset", "act"):
         if not hasattr(controller, name):
-            raise TypeError(f"controller: missing {name!r}; see algorithms.base.Controller")
+            raise TypeError(f"controller: missing {name!r}; see scg_algorithms.base.Controller")
     if isinstance(num_episodes, bool) or int(num_episodes) != num_episodes or num_episodes < 1:
         raise ValueError(f"num_episodes: must be a positive integer, got {num_episodes!r}")
     return int(num_episodes)
@@ -320,7 +320,7 @@ def evaluate(
 
     Args:
         env: an ``scg_jax.Env``. params: the true plant's ``EnvParams`` (what is simulated; the controller was built
-            from its own prior). controller: an ``algorithms.base.Controller``. key: a JAX PRNG key.
+            from its own prior). controller: an ``scg_algorithms.base.Controller``. key: a JAX PRNG key.
         num_episodes: number of episodes, run as parallel copies (one episode per copy).
         batched_params: ``params`` has a leading axis of size ``num_episodes`` (a sweep).
         measure_time: time JAX controllers alone (one extra replay); host controllers are always timed.

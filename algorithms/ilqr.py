@@ -13,7 +13,7 @@ with ``r = x_ref``, ``v = u_ref`` and ``f`` a discrete step function (the prior 
 
        u_k = u_bar_k + alpha d_k - K_k (x_k - x_bar_k)
 
-   (the sign of ``algorithms.lqr``: a positive gain pushes against a positive deviation). ``d_k, K_k`` minimise the
+   (the sign of ``scg_algorithms.lqr``: a positive gain pushes against a positive deviation). ``d_k, K_k`` minimise the
    local quadratic model with ``Quu + mu I`` (Levenberg-Marquardt regularisation ``mu``). With
    ``input_constraints="box"`` (default) they solve the box-constrained QP of box-DDP (Tassa, Mansard, Todorov,
    ICRA 2014): ``d_k`` by a projected Newton method within ``u_low - u_bar_k <= d_k <= u_high - u_bar_k`` and
@@ -58,8 +58,8 @@ import numpy as np
 from jax import lax
 from jax.scipy.linalg import cho_solve
 
-from algorithms import controller_setup as setup
-from algorithms.base import JaxController, option, parse_options, positive, state_from_obs
+from scg_algorithms import controller_setup as setup
+from scg_algorithms.base import JaxController, option, parse_options, positive, state_from_obs
 
 INPUT_CONSTRAINTS = ("box", "clip")
 
@@ -501,7 +501,7 @@ class ILQRState(NamedTuple):
 
 def model_step_fn(env, prior_params, discretization: str = "rk4"):
     """The prior model's discrete step ``f(x, u) -> x_next`` over one control period (JAX); the shared helper
-    ``algorithms.controller_setup.prior_step_fn``, kept under this name for callers of this module."""
+    ``scg_algorithms.controller_setup.prior_step_fn``, kept under this name for callers of this module."""
     return setup.prior_step_fn(env, prior_params, discretization)
 
 

@@ -19,8 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from algorithms import controller_setup as setup
-from algorithms.base import JaxController, option, parse_options, state_from_obs
+from scg_algorithms import controller_setup as setup
+from scg_algorithms.base import JaxController, option, parse_options, state_from_obs
 
 
 def _matrix(name: str, value, shape: tuple[int, int]) -> np.ndarray:

@@ -45,7 +45,7 @@ from typing import Any, NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from algorithms.base import JaxController, option, parse_options, state_from_obs
+from scg_algorithms.base import JaxController, option, parse_options, state_from_obs
 from scg_jax.backends import jax_backend
 
 SUPPORTED_SYSTEMS = ("quadrotor_1d", "quadrotor_2d", "quadrotor_3d")

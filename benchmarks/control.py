@@ -2,12 +2,12 @@
 
 Two measurements per system (cart-pole and 2D quadrotor, each in its paper configuration), in one run:
 
-1. **Nonlinear MPC** (``algorithms.mpc.nonlinear``, IPOPT, horizon ``--horizon``) against a **reference
+1. **Nonlinear MPC** (``scg_algorithms.mpc.nonlinear``, IPOPT, horizon ``--horizon``) against a **reference
    formulation built in the same run**: the original safe-control-gym's MPC as it is usually written (CasADi
    ``Opti``, multiple shooting over the same one-step RK4 prior model, quadratic stage cost with the same full
    ``Q``/``R``, the same constraints, ``opti.solver("ipopt", {"expand": True})``, ``opti.set_value`` /
    ``opti.set_initial`` with the shifted previous plan, ``opti.solve()`` every step). Both controllers see the
-   same observation at every step of ``--episodes`` closed-loop episodes run by ``algorithms.evaluation.evaluate``
+   same observation at every step of ``--episodes`` closed-loop episodes run by ``scg_algorithms.evaluation.evaluate``
    with ours in the loop; each keeps its own warm start. Two settings:
 
    - ``default``: our default options (Riccati terminal weight, primal-dual warm start with a small barrier
@@ -22,7 +22,7 @@ Two measurements per system (cart-pole and 2D quadrotor, each in its paper confi
    medians (ours / reference: below 1 is faster); IPOPT iterations of each; the largest difference between the two
    first inputs (the same NLP, so at solver tolerance). The original suite's own figures (about 6 ms per step on the
    cart-pole and 11 ms on the 2D quadrotor, machine unknown) are printed for scale only.
-2. **Batched linear MPC** (``algorithms.mpc.linear.make_linear_mpc``, the condensed QP solved by qpax, horizon
+2. **Batched linear MPC** (``scg_algorithms.mpc.linear.make_linear_mpc``, the condensed QP solved by qpax, horizon
    ``--horizon``): one jitted ``vmap`` of ``act`` over ``--batch`` copies (their observations from a vmapped
    ``env.reset`` of the config's initial-state distribution, control step 0), timed per call; solves per second =
    batch / time per call. Next to it, in the same run with alternating timed runs, the env's own throughput at the
@@ -53,10 +53,10 @@ from rich.console import Console
 from rich.table import Table
 from throughput import measure_pair  # benchmarks/throughput.py: compile, calibrate, alternate timed runs
 
-from algorithms.base import Reference
-from algorithms.evaluation import evaluate
-from algorithms.mpc.linear import make_linear_mpc
-from algorithms.mpc.nonlinear import make_nonlinear_mpc
+from scg_algorithms.base import Reference
+from scg_algorithms.evaluation import evaluate
+from scg_algorithms.mpc.linear import make_linear_mpc
+from scg_algorithms.mpc.nonlinear import make_nonlinear_mpc
 from scg_jax.config import load_config, make_from_config
 from scg_jax.files import write_json
 

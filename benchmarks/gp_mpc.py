@@ -3,7 +3,7 @@
 For each system (the cart-pole in the paper's data-efficiency setting, 10 Hz, and the 2D quadrotor tracking a
 circle, 10 Hz), in one run:
 
-1. One learning round (``algorithms.gp_mpc.controller.learn`` with ``rounds=1``): LQR on the 150% prior with
+1. One learning round (``scg_algorithms.gp_mpc.controller.learn`` with ``rounds=1``): LQR on the 150% prior with
    exploration noise collects ``--train-episodes`` episodes, and the GP is fit (FITC, ``--inducing`` points).
 2. ``--episodes`` closed-loop episodes of the nonlinear MPC on the 150% prior and of GP-MPC, through the harness,
    on the same episodes. Every ``act`` is timed (IPOPT's wall time): median and 95th percentile per step, and their
@@ -28,10 +28,10 @@ from machine import print_machine, run_record, write_markdown_table  # benchmark
 from rich.console import Console
 
 import scg_jax
-from algorithms.evaluation import evaluate
-from algorithms.gp_mpc.controller import learn, make_gp_mpc
-from algorithms.gp_mpc.model import fit_model_error
-from algorithms.mpc.nonlinear import make_nonlinear_mpc
+from scg_algorithms.evaluation import evaluate
+from scg_algorithms.gp_mpc.controller import learn, make_gp_mpc
+from scg_algorithms.gp_mpc.model import fit_model_error
+from scg_algorithms.mpc.nonlinear import make_nonlinear_mpc
 from scg_jax.files import write_json
 
 DEFAULT_JSON = Path(__file__).resolve().parent / "results" / "gp_mpc.json"

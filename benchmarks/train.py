@@ -9,7 +9,7 @@ Two measurements, each against a baseline measured in the same run:
    speed the learner keeps.
 2. **Time to threshold** (``--threshold``): wall time from the start of training (compile included, evaluation
    excluded) until the deterministic policy's stabilisation RMSE, evaluated on ``--eval-episodes`` episodes by
-   ``algorithms.evaluation.evaluate``, is within ``--rmse-factor`` (1.5) times LQR's on the same episodes, with no
+   ``scg_algorithms.evaluation.evaluate``, is within ``--rmse-factor`` (1.5) times LQR's on the same episodes, with no
    crash. Our PPO is trained in chunks of iterations and evaluated after each; brax's PPO (through
    ``scg_jax.adapters.brax``) with the same env, copies, rollout length, epochs, minibatches, learning rate and
    networks, evaluated in its ``policy_params_fn`` callback at ``--brax-evals`` points. The ratio brax / ours of
@@ -38,11 +38,11 @@ from machine import load_average, print_machine, run_record  # benchmarks/machin
 from rich.console import Console
 from rich.table import Table
 
-from algorithms.base import JaxController, parse_options
-from algorithms.evaluation import evaluate, make_evaluator
-from algorithms.lqr import make_lqr
-from algorithms.rl.envs import policy_action_to_input
-from algorithms.rl.policy import algorithm_module
+from scg_algorithms.base import JaxController, parse_options
+from scg_algorithms.evaluation import evaluate, make_evaluator
+from scg_algorithms.lqr import make_lqr
+from scg_algorithms.rl.envs import policy_action_to_input
+from scg_algorithms.rl.policy import algorithm_module
 from scg_jax.config import load_config, make_from_config
 from scg_jax.files import write_json
 from scg_jax.rollout import make_rollout

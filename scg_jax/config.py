@@ -527,7 +527,7 @@ def _options_mapping(value, path):
 class Config(_Section):
     """A whole configuration file: the environment, and the settings of the methods run on it.
 
-    ``controllers.<name>`` holds the options of the controller ``name`` (``algorithms.CONTROLLERS``; checked when
+    ``controllers.<name>`` holds the options of the controller ``name`` (``scg_algorithms.CONTROLLERS``; checked when
     the controller is built, messages name ``controllers.<name>.<key>``), ``training.<algo>`` the hyperparameters
     of the learner ``algo`` (``ppo``, ``sac``; checked by its ``make_train``). Both default to empty (every
     option at its default).

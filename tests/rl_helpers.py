@@ -3,7 +3,7 @@
 import jax
 import jax.numpy as jnp
 
-from algorithms.rl.training import run_training
+from scg_algorithms.rl.training import run_training
 
 
 def run_training_capturing_policy(learner, env, params, key, out_dir):

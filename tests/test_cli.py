@@ -6,7 +6,7 @@ import os
 import numpy as np
 import pytest
 
-from scg_jax.cli import main
+from scg_cli import main
 
 
 def _run(tmp_path, name, *args):
@@ -220,14 +220,14 @@ def no_work(monkeypatch):
     """Fail the test if a command starts computing: the output location must be refused before."""
     import importlib
 
-    import algorithms.evaluation
+    import scg_algorithms.evaluation
 
     def refuse(*args, **kwargs):
         raise AssertionError("the command started computing before checking --out")
 
     # scg_jax.rollout is also the name of a function in scg_jax, so fetch the module itself.
     monkeypatch.setattr(importlib.import_module("scg_jax.rollout"), "make_rollout", refuse)
-    monkeypatch.setattr(algorithms.evaluation, "evaluate", refuse)
+    monkeypatch.setattr(scg_algorithms.evaluation, "evaluate", refuse)
 
 
 def _bad_out(capsys, argv) -> str:

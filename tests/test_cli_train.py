@@ -6,8 +6,8 @@ import shlex
 import numpy as np
 import pytest
 
-import algorithms.rl.training as training
-from scg_jax.cli import main
+import scg_algorithms.rl.training as training
+from scg_cli import main
 
 # 1-s episodes; 2 iterations of 16 copies x 16 steps (512 env steps).
 _ENV = ["--config", "configs/cartpole_stabilization.yaml", "--set", "env.episode_len_sec=1"]

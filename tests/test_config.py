@@ -14,9 +14,9 @@ import pytest
 import yaml
 
 import scg_jax
-from algorithms import CONTROLLERS
-from algorithms.base import parse_options
-from algorithms.rl.policy import algorithm_module
+from scg_algorithms import CONTROLLERS
+from scg_algorithms.base import parse_options
+from scg_algorithms.rl.policy import algorithm_module
 from scg_jax import constraints as constraints_lib
 from scg_jax import disturbances as disturbances_lib
 from scg_jax import randomization

@@ -1,4 +1,4 @@
-"""The shared controller set-up (algorithms.controller_setup): one set of weights, linearisation points, terminal
+"""The shared controller set-up (scg_algorithms.controller_setup): one set of weights, linearisation points, terminal
 weight and prior model for every model-based controller, checked against the symbolic model and the Riccati
 equation, and the same weights seen by every controller."""
 
@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 import scg_jax
-from algorithms import controller_setup as setup
-from algorithms.ilqr import make_ilqr
-from algorithms.lqr import discrete_lqr_gain, make_lqr
-from algorithms.mpc.linear import build_problem
-from algorithms.mpc.nonlinear import make_nonlinear_mpc
+from scg_algorithms import controller_setup as setup
+from scg_algorithms.ilqr import make_ilqr
+from scg_algorithms.lqr import discrete_lqr_gain, make_lqr
+from scg_algorithms.mpc.linear import build_problem
+from scg_algorithms.mpc.nonlinear import make_nonlinear_mpc
 from scg_jax.env import prior_params
 
 

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 import scg_jax
-from algorithms.base import JaxController, Reference
-from algorithms.evaluation import SUMMARY_KEYS, evaluate, evaluation_record
-from algorithms.lqr import make_lqr
+from scg_algorithms.base import JaxController, Reference
+from scg_algorithms.evaluation import SUMMARY_KEYS, evaluate, evaluation_record
+from scg_algorithms.lqr import make_lqr
 
 NUM_EPISODES = 4
 

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from algorithms import gp
+from scg_algorithms import gp
 
 
 def _closed_form(x, y, z, ls, s2, noise, kernel="rbf"):

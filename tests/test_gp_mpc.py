@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 import scg_jax
-from algorithms import gp, make_controller
-from algorithms.evaluation import evaluate
-from algorithms.gp_mpc.controller import LearningResult, learn, make_gp_mpc
-from algorithms.gp_mpc.run import is_run, load_run, save_run, write_learning_curve
+from scg_algorithms import gp, make_controller
+from scg_algorithms.evaluation import evaluate
+from scg_algorithms.gp_mpc.controller import LearningResult, learn, make_gp_mpc
+from scg_algorithms.gp_mpc.run import is_run, load_run, save_run, write_learning_curve
 
 # The data-efficiency setting of the paper (Fig. 6): 10 Hz, 5 s episodes, x0 in +-0.3 m and +-0.1 rad.
 PAPER = dict(

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 import scg_jax
-from algorithms import make_controller
-from algorithms.base import JaxController
-from algorithms.evaluation import evaluate
-from algorithms.gp_mpc import data
+from scg_algorithms import make_controller
+from scg_algorithms.base import JaxController
+from scg_algorithms.evaluation import evaluate
+from scg_algorithms.gp_mpc import data
 
 
 @pytest.fixture(scope="module")

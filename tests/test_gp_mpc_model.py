@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 import scg_jax
-from algorithms import gp, make_controller
-from algorithms.evaluation import evaluate
-from algorithms.gp_mpc import data, tightening
-from algorithms.gp_mpc.model import PlanUncertainty, fit_model_error, learned_model
+from scg_algorithms import gp, make_controller
+from scg_algorithms.evaluation import evaluate
+from scg_algorithms.gp_mpc import data, tightening
+from scg_algorithms.gp_mpc.model import PlanUncertainty, fit_model_error, learned_model
 
 
 @pytest.fixture(scope="module")

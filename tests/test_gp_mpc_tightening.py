@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from algorithms.gp_mpc import tightening
+from scg_algorithms.gp_mpc import tightening
 
 
 def test_quantile_matches_the_original_suites_values():

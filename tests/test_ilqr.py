@@ -8,9 +8,9 @@ import pytest
 import scipy.optimize
 
 import scg_jax
-from algorithms.evaluation import evaluate
-from algorithms.ilqr import ILQRSettings, ilqr_solve, make_ilqr, model_step_fn
-from algorithms.lqr import discrete_lqr_gain, make_lqr
+from scg_algorithms.evaluation import evaluate
+from scg_algorithms.ilqr import ILQRSettings, ilqr_solve, make_ilqr, model_step_fn
+from scg_algorithms.lqr import discrete_lqr_gain, make_lqr
 
 
 def _riccati(A, B, Q, R, Q_terminal, horizon):

@@ -46,3 +46,20 @@ def test_importing_the_env_package_loads_no_algorithm():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
     assert out.stdout.strip() == "[]"
+
+
+def test_every_package_folder_is_installed_under_its_import_name():
+    """pyproject lists every folder with an ``__init__.py`` (algorithms/ as scg_algorithms, cli/ as scg_cli)."""
+    import tomllib
+
+    setuptools = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    import_name = {folder: name for name, folder in setuptools["package-dir"].items()}
+    folders = sorted(p.parent.relative_to(ROOT) for top in ("scg_jax", "algorithms", "cli")
+                     for p in (ROOT / top).rglob("__init__.py"))  # fmt: skip
+    expected = sorted(".".join([import_name.get(f.parts[0], f.parts[0]), *f.parts[1:]]) for f in folders)
+    assert sorted(setuptools["packages"]) == expected
+    import scg_algorithms
+    import scg_cli
+
+    assert Path(scg_algorithms.__file__).parent == ROOT / "algorithms"
+    assert Path(scg_cli.__file__).parent == ROOT / "cli"

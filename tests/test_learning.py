@@ -12,9 +12,9 @@ leaves room for the spread rather than for one machine's numbers. Each test trai
 import jax
 import pytest
 
-from algorithms.evaluation import evaluate
-from algorithms.lqr import make_lqr
-from algorithms.rl.policy import algorithm_module, policy_controller
+from scg_algorithms.evaluation import evaluate
+from scg_algorithms.lqr import make_lqr
+from scg_algorithms.rl.policy import algorithm_module, policy_controller
 from scg_jax.config import load_config, make_from_config
 
 EPISODES = 32

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 import scg_jax
-from algorithms.base import Reference
-from algorithms.evaluation import evaluate
-from algorithms.lqr import make_lqr
-from algorithms.mpc import qp as qp_lib
-from algorithms.mpc.linear import make_linear_mpc, make_linear_mpc_casadi
+from scg_algorithms.base import Reference
+from scg_algorithms.evaluation import evaluate
+from scg_algorithms.lqr import make_lqr
+from scg_algorithms.mpc import qp as qp_lib
+from scg_algorithms.mpc.linear import make_linear_mpc, make_linear_mpc_casadi
 
 # Position box inside the default state bounds, so some stages of a perturbed tracking QP press against it.
 QUAD_CONSTRAINTS = [

@@ -6,8 +6,8 @@ import pytest
 import scipy.linalg
 
 import scg_jax
-from algorithms.evaluation import evaluate
-from algorithms.lqr import continuous_lqr_gain, make_lqr
+from scg_algorithms.evaluation import evaluate
+from scg_algorithms.lqr import continuous_lqr_gain, make_lqr
 from scg_jax.config import load_config, make_from_config
 from scg_jax.env import prior_params
 

@@ -5,7 +5,7 @@ import pytest
 import scipy.linalg
 
 import scg_jax
-from algorithms.lqr import discrete_lqr_gain, lqr_gain_about
+from scg_algorithms.lqr import discrete_lqr_gain, lqr_gain_about
 
 
 def test_gain_solves_the_discrete_riccati_equation_for_the_cartpole():

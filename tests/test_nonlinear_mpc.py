@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 import scg_jax
-from algorithms.base import Reference
-from algorithms.evaluation import evaluate
-from algorithms.lqr import make_lqr
-from algorithms.mpc.nonlinear import make_nonlinear_mpc
+from scg_algorithms.base import Reference
+from scg_algorithms.evaluation import evaluate
+from scg_algorithms.lqr import make_lqr
+from scg_algorithms.mpc.nonlinear import make_nonlinear_mpc
 
 
 def _reference(env, params):

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 import scg_jax
-from algorithms.base import JaxController
-from algorithms.evaluation import evaluate
-from algorithms.pid import allocation_matrix, make_pid, motor_mixer
+from scg_algorithms.base import JaxController
+from scg_algorithms.evaluation import evaluate
+from scg_algorithms.pid import allocation_matrix, make_pid, motor_mixer
 from scg_jax.env import prior_params
 
 EPISODES = 4
@@ -125,7 +125,7 @@ def test_pid_stabilises_hover_from_tilted_displaced_starts(system):
     final = np.linalg.norm(x[-1][:, positions] - goal[positions], axis=-1)
     assert pid.summary["failure_rate"] == 0.0 and pid.summary["length"] == env.num_steps
     # The position loop (2.8 rad/s, damping 0.9) removes most of the offset within a second; what is left after 3 s
-    # is the slow integral mode (-0.30 rad/s, see the module docstring of algorithms.pid): measured 1.7 cm at most
+    # is the slow integral mode (-0.30 rad/s, see the module docstring of scg_algorithms.pid): measured 1.7 cm at most
     # on the 3D quadrotor from 15 cm, 1.4 cm on the 2D one from 12 cm; a ninth of the initial offset on average.
     assert np.all(final < 0.03) and np.mean(final) < 0.25 * np.mean(initial)
     # Open-loop hover thrust from a tilted start drifts away (3 of the 4 episodes crash within the 3 s; RMSE 0.83

@@ -11,11 +11,11 @@ import pytest
 import scipy.stats
 
 import scg_jax
-from algorithms.ppo import Config, losses, make_learner, make_train
-from algorithms.rl.counter import count_value
-from algorithms.rl.envs import policy_action_to_input
-from algorithms.rl.normalization import init_stats
-from algorithms.rl.policy import load_policy
+from scg_algorithms.ppo import Config, losses, make_learner, make_train
+from scg_algorithms.rl.counter import count_value
+from scg_algorithms.rl.envs import policy_action_to_input
+from scg_algorithms.rl.normalization import init_stats
+from scg_algorithms.rl.policy import load_policy
 from tests.rl_helpers import run_seeds_twice, run_training_capturing_policy
 
 # 4 iterations of 8 copies x 16 steps; one epoch of one minibatch, so the first (only) gradient step of an iteration

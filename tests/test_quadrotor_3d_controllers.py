@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 import scg_jax
-from algorithms.base import Reference
-from algorithms.evaluation import evaluate
-from algorithms.ilqr import make_ilqr
-from algorithms.lqr import make_lqr
-from algorithms.mpc.linear import make_linear_mpc, make_linear_mpc_casadi
-from algorithms.mpc.nonlinear import make_nonlinear_mpc
+from scg_algorithms.base import Reference
+from scg_algorithms.evaluation import evaluate
+from scg_algorithms.ilqr import make_ilqr
+from scg_algorithms.lqr import make_lqr
+from scg_algorithms.mpc.linear import make_linear_mpc, make_linear_mpc_casadi
+from scg_algorithms.mpc.nonlinear import make_nonlinear_mpc
 
 EPISODES = 2
 GOAL = np.array([0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])

@@ -13,11 +13,11 @@ import pytest
 from flax import serialization
 
 import scg_jax
-from algorithms.ppo import make_learner
-from algorithms.rl.checkpoint import load_checkpoint, load_metadata, save_checkpoint
-from algorithms.rl.collector import ActOutput, collect, init_collector
-from algorithms.rl.counter import Count, add_count, count_at_least, count_to_float, count_value, zero_count
-from algorithms.rl.envs import (
+from scg_algorithms.ppo import make_learner
+from scg_algorithms.rl.checkpoint import load_checkpoint, load_metadata, save_checkpoint
+from scg_algorithms.rl.collector import ActOutput, collect, init_collector
+from scg_algorithms.rl.counter import Count, add_count, count_at_least, count_to_float, count_value, zero_count
+from scg_algorithms.rl.envs import (
     episode_means,
     init_episode_stats,
     initial_episode_means,
@@ -25,11 +25,11 @@ from algorithms.rl.envs import (
     policy_action_to_input,
     update_episode_stats,
 )
-from algorithms.rl.normalization import RunningStats, init_stats, normalize, update_stats
-from algorithms.rl.policy import load_policy, trained_system
-from algorithms.rl.training import TrainingInterrupted, rmse_label, run_training
-from algorithms.sac import make_learner as sac_make_learner
-from algorithms.sac.replay import ReplayBuffer
+from scg_algorithms.rl.normalization import RunningStats, init_stats, normalize, update_stats
+from scg_algorithms.rl.policy import load_policy, trained_system
+from scg_algorithms.rl.training import TrainingInterrupted, rmse_label, run_training
+from scg_algorithms.sac import make_learner as sac_make_learner
+from scg_algorithms.sac.replay import ReplayBuffer
 from scg_jax.rollout import auto_reset_step
 
 

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 import scg_jax
-from algorithms.rl.counter import count_value
-from algorithms.rl.envs import policy_action_to_input
-from algorithms.rl.normalization import init_stats
-from algorithms.rl.policy import load_policy
-from algorithms.sac import Config, losses, make_learner, make_policy_from_config, make_train, parse_config, replay
+from scg_algorithms.rl.counter import count_value
+from scg_algorithms.rl.envs import policy_action_to_input
+from scg_algorithms.rl.normalization import init_stats
+from scg_algorithms.rl.policy import load_policy
+from scg_algorithms.sac import Config, losses, make_learner, make_policy_from_config, make_train, parse_config, replay
 from tests.rl_helpers import run_seeds_twice, run_training_capturing_policy
 
 # 100 iterations of 8 transitions, 2 gradient steps each after 25 warm-up iterations (200 transitions); the buffer

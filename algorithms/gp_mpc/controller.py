@@ -1,6 +1,6 @@
 """The GP-MPC controller and its learning loop.
 
-``GPMPC`` is the nonlinear MPC (``algorithms.mpc.nonlinear``: IPOPT, warm start, soft constraints, fallbacks) with
+``GPMPC`` is the nonlinear MPC (``scg_algorithms.mpc.nonlinear``: IPOPT, warm start, soft constraints, fallbacks) with
 two arguments set: its prediction model is ``f_prior(x, u) + μ([x; u])`` (``model.learned_model``), and its env
 constraints are tightened at every stage by the margins of ``model.PlanUncertainty``: the GP's variance propagated
 along the warm-start plan under the prior's LQR gain, at chance level ``prob`` (Hewing et al. 2020).
@@ -20,14 +20,14 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from algorithms import controller_setup as setup
-from algorithms import gp
-from algorithms.base import option, parse_options, positive
-from algorithms.evaluation import evaluate
-from algorithms.gp_mpc import data
-from algorithms.gp_mpc.model import PlanUncertainty, fit_model_error, learned_model
-from algorithms.mpc.nonlinear import NonlinearMPC
-from algorithms.mpc.nonlinear import Options as NMPCOptions
+from scg_algorithms import controller_setup as setup
+from scg_algorithms import gp
+from scg_algorithms.base import option, parse_options, positive
+from scg_algorithms.evaluation import evaluate
+from scg_algorithms.gp_mpc import data
+from scg_algorithms.gp_mpc.model import PlanUncertainty, fit_model_error, learned_model
+from scg_algorithms.mpc.nonlinear import NonlinearMPC
+from scg_algorithms.mpc.nonlinear import Options as NMPCOptions
 
 PATH = "controllers.gp_mpc"
 _SHARED = ("horizon", "q_diag", "r_diag", "terminal_weight", "soft_constraints", "soft_penalty", "warm_start",
@@ -149,7 +149,7 @@ class LearningResult(NamedTuple):
 
 
 def _prior_explorer(env, prior_params, opts: Options):
-    from algorithms.lqr import make_lqr
+    from scg_algorithms.lqr import make_lqr
 
     low, high = (np.asarray(b, dtype=float) for b in env.input_bounds(prior_params.physics))
     return data.exploring(make_lqr(env, prior_params, {"mode": "goal"}), opts.exploration_std * (high - low))

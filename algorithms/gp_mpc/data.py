@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from algorithms.base import JaxController
+from scg_algorithms.base import JaxController
 
 
 def exploring(controller: JaxController, std) -> JaxController:

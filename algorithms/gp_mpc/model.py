@@ -12,8 +12,8 @@ import casadi as cs
 import jax
 import numpy as np
 
-from algorithms import gp
-from algorithms.gp_mpc import tightening
+from scg_algorithms import gp
+from scg_algorithms.gp_mpc import tightening
 
 
 def fit_model_error(

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from algorithms import gp
-from algorithms.base import parse_options
-from algorithms.gp_mpc.controller import GPMPC, PATH, LearningResult, Options, make_gp_mpc
+from scg_algorithms import gp
+from scg_algorithms.base import parse_options
+from scg_algorithms.gp_mpc.controller import GPMPC, PATH, LearningResult, Options, make_gp_mpc
 from scg_jax.files import write_atomic, write_json
 
 RUN_NAME = "gp_mpc"  # DIR/gp_mpc.json (what was learned and how) and DIR/gp_mpc.npz (the GP's arrays)

@@ -4,7 +4,7 @@ Two controllers share one ``Options`` dataclass (a config file's ``controllers.l
 ``controllers.linear_mpc_casadi`` sections; the qpax fields are ignored by the CasADi one):
 
 - ``make_linear_mpc`` (registered ``"linear_mpc"``): a ``JaxController`` whose ``act`` forms the right-hand side
-  of the condensed QP of ``algorithms.mpc.qp`` and solves it with ``qpax`` (a primal-dual interior-point method in
+  of the condensed QP of ``scg_algorithms.mpc.qp`` and solves it with ``qpax`` (a primal-dual interior-point method in
   JAX); ``jax.vmap`` runs thousands of copies at once.
 - ``make_linear_mpc_casadi`` (registered ``"linear_mpc_casadi"``): the same problem for one copy on the host in the
   form of ``casadi.Opti("conic")`` (inputs as the only variables, states as expressions of them; no
@@ -24,7 +24,7 @@ Problem at control step ``k`` (observed state ``x_0``, reference ``r_j = x_ref[m
   reference point (``linearize_about="reference"``; stage ``j`` of step ``k`` uses point ``min(k + j, T)``), with
   the affine offset ``c = fd(x_bar, u_eq) - Ad x_bar - Bd u_eq``, so a moving reference is predicted exactly
   where the model is linear. ``u_eq`` is the prior's equilibrium input (hover thrust, zero force).
-- **Terminal weight**: ``P`` of the discrete Riccati equation (``algorithms.lqr.discrete_lqr_gain``) at the
+- **Terminal weight**: ``P`` of the discrete Riccati equation (``scg_algorithms.lqr.discrete_lqr_gain``) at the
   point of stage ``H``, so without active constraints the first input is the LQR input
   ``u_eq - K (x_0 - x_ref[k])`` for any horizon (the tests check this).
 - **Constraints**: ``bounded``, ``abs_bound``, ``linear`` and ``default`` constraints (all stored as ``A z - b``)
@@ -34,12 +34,12 @@ Problem at control step ``k`` (observed state ``x_0``, reference ``r_j = x_ref[m
   violated when ``g > tolerance``; the MPC imposes ``g <= 0``.
 - **Soft constraints** (``soft_constraints=True``): every row that involves the state gets a slack ``e >= 0``,
   one shared by all stages (default: the row's worst violation over the horizon) or one per stage
-  (``slack_per_stage=True``; see ``algorithms.mpc.qp`` for how the two behave), at the cost
+  (``slack_per_stage=True``; see ``scg_algorithms.mpc.qp`` for how the two behave), at the cost
   ``slack_l1 * e + 1/2 slack_l2 * e^2`` per slack, so the QP stays feasible when the plant is already outside
   or cannot avoid leaving the constraint set; input rows stay hard.
-- **Failure handling** (JAX): every solve is checked (status in ``ctrl_state``; ``algorithms.mpc.qp``). A finite
+- **Failure handling** (JAX): every solve is checked (status in ``ctrl_state``; ``scg_algorithms.mpc.qp``). A finite
   iterate feasible within ``feasibility_tol`` is used even if qpax did not report convergence (float32 limits the
-  residual it can reach, see ``algorithms.mpc.qp``); a non-finite or infeasible one (an infeasible QP: hard
+  residual it can reach, see ``scg_algorithms.mpc.qp``); a non-finite or infeasible one (an infeasible QP: hard
   state constraints that cannot be met, or input rows that contradict the actuator limits) is replaced by the
   LQR input ``u_eq - K (x_0 - x_ref[k])``. In every case the input is finally clipped to the box of the hard input
   rows (actuator limits and single-input constraint rows), so the output is never NaN and never commands outside
@@ -47,7 +47,7 @@ Problem at control step ``k`` (observed state ``x_0``, reference ``r_j = x_ref[m
   its solver reports failure.
 
 Controller memory (JAX): ``LinearMPCState(status, iterations)`` of the last solve, for diagnostics only
-(``algorithms.mpc.qp.STATUS_*``).
+(``scg_algorithms.mpc.qp.STATUS_*``).
 """
 
 from __future__ import annotations
@@ -58,10 +58,10 @@ from typing import Any, ClassVar, NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from algorithms import controller_setup as setup
-from algorithms.base import JaxController, option, parse_options, positive, state_from_obs
-from algorithms.lqr import discrete_lqr_gain
-from algorithms.mpc import qp as qp_lib
+from scg_algorithms import controller_setup as setup
+from scg_algorithms.base import JaxController, option, parse_options, positive, state_from_obs
+from scg_algorithms.lqr import discrete_lqr_gain
+from scg_algorithms.mpc import qp as qp_lib
 
 LINEARIZE_ABOUT = setup.LINEARIZE_ABOUT
 TERMINAL_WEIGHTS = setup.TERMINAL_WEIGHTS
@@ -106,7 +106,7 @@ class Options:
     prestabilize: bool = option(True, "condense with the LQR-stabilised prediction (u = u_eq - K dx + v)")
     max_iter: int = option(40, "qpax interior-point iterations at most (float32 solves rarely stop earlier)")
     solver_tol: float = option(
-        1e-8, "qpax KKT residual tolerance (on the scaled QP; the default runs max_iter, see algorithms.mpc.qp)"
+        1e-8, "qpax KKT residual tolerance (on the scaled QP; the default runs max_iter, see scg_algorithms.mpc.qp)"
     )
     feasibility_tol: float = option(
         1e-3, "largest constraint violation (row units: m, rad, N) of an unconverged iterate that is still used"
@@ -127,7 +127,7 @@ class Options:
 
 
 class LinearMPCState(NamedTuple):
-    """Diagnostics of the last solve of one copy: ``status`` (``algorithms.mpc.qp.STATUS_*``, int32) and the
+    """Diagnostics of the last solve of one copy: ``status`` (``scg_algorithms.mpc.qp.STATUS_*``, int32) and the
     interior-point ``iterations`` (int32)."""
 
     status: Any
@@ -273,7 +273,7 @@ def build_problem(env, prior_params, options=None, path: str = PATH) -> Problem:
 
 
 def build_condensed_qp(problem: Problem) -> qp_lib.CondensedQP:
-    """The condensed QP of ``problem`` (``algorithms.mpc.qp.build_qp`` with its options)."""
+    """The condensed QP of ``problem`` (``scg_algorithms.mpc.qp.build_qp`` with its options)."""
     opts = problem.options
     return qp_lib.build_qp(
         problem.affine,

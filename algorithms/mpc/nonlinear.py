@@ -56,8 +56,8 @@ from typing import NamedTuple
 import casadi as cs
 import numpy as np
 
-from algorithms import controller_setup as setup
-from algorithms.base import option, parse_options, positive, state_from_obs
+from scg_algorithms import controller_setup as setup
+from scg_algorithms.base import option, parse_options, positive, state_from_obs
 
 PATH = "controllers.nonlinear_mpc"
 SOURCES = ("solution", "last_iterate", "shifted_plan", "equilibrium")

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import dataclasses
 
-from algorithms.base import option
-from algorithms.rl.config import check_budget, check_fields, layer_sizes
-from algorithms.rl.networks import ACTIVATIONS
+from scg_algorithms.base import option
+from scg_algorithms.rl.config import check_budget, check_fields, layer_sizes
+from scg_algorithms.rl.networks import ACTIVATIONS
 
 
 @dataclasses.dataclass(frozen=True)

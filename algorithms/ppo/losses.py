@@ -1,14 +1,14 @@
 """PPO's pure pieces: the diagonal Gaussian policy, generalised advantage estimation and the clipped losses.
 
 Action convention: the policy is a diagonal Gaussian ``N(mu(obs), diag(exp(log_std))^2)`` over *unbounded*
-actions; the environment wrapper (``algorithms.rl.envs``) clips a sample to [-1, 1] before applying it. The clip is
+actions; the environment wrapper (``scg_algorithms.rl.envs``) clips a sample to [-1, 1] before applying it. The clip is
 part of the environment as the learner sees it, so the log-probabilities, ratios and entropy are those of the
 unclipped Gaussian sample the learner stored (exact, closed form), and the deterministic action is
 ``clip(mu, -1, 1)``. (tanh squashing would need a Jacobian correction and has no closed-form entropy; near the
 upright equilibrium the actions are small and the clip is rarely active.)
 
 All functions are pure ``jax.numpy`` and work on any leading batch shape. The Gaussian's density and entropy are
-the learners' shared ones (``algorithms.rl.distributions``), re-exported here.
+the learners' shared ones (``scg_algorithms.rl.distributions``), re-exported here.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from algorithms.rl.distributions import LOG_2PI, gaussian_entropy, gaussian_log_prob
+from scg_algorithms.rl.distributions import LOG_2PI, gaussian_entropy, gaussian_log_prob
 
 __all__ = [
     "LOG_2PI",

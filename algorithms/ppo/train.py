@@ -1,9 +1,9 @@
-"""Proximal policy optimisation (clipped objective) in JAX, on ``algorithms.rl.envs.TrainEnv`` copies.
+"""Proximal policy optimisation (clipped objective) in JAX, on ``scg_algorithms.rl.envs.TrainEnv`` copies.
 
 One iteration:
 
 1. roll out ``rollout_length`` steps on ``num_envs`` copies with the current stochastic policy (the learners' shared
-   ``algorithms.rl.collector``); observations are
+   ``scg_algorithms.rl.collector``); observations are
    normalised with the running statistics *as they were at the start of the iteration* and stored normalised, so
    the stored log-probabilities are exactly those the optimisation later recomputes (the statistics are updated
    with the raw observations after the rollout);
@@ -17,7 +17,7 @@ deterministic policy is ``clip(mu, -1, 1)``.
 
 Everything is a pure function of the key and the ``EnvParams``: ``make_train(config, env)(key, params)`` is the
 whole run and can be ``jax.jit``-ed and ``jax.vmap``-ed over keys (seeds); ``make_learner`` exposes the same
-iteration to the host driver ``algorithms.rl.training.run_training``. Domain randomisation and disturbances are
+iteration to the host driver ``scg_algorithms.rl.training.run_training``. Domain randomisation and disturbances are
 the env's (drawn at every reset from ``params``), so training on a randomised pole length is a config change.
 """
 
@@ -30,15 +30,15 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from algorithms.ppo import losses
-from algorithms.ppo.config import Config
-from algorithms.rl.collector import ActOutput, CollectorState, collect, init_collector
-from algorithms.rl.config import parse_learner_config
-from algorithms.rl.counter import Count, add_count, zero_count
-from algorithms.rl.envs import make_train_env
-from algorithms.rl.networks import MLP, value_network
-from algorithms.rl.normalization import RunningStats, normalize
-from algorithms.rl.training import Learner, raw_key
+from scg_algorithms.ppo import losses
+from scg_algorithms.ppo.config import Config
+from scg_algorithms.rl.collector import ActOutput, CollectorState, collect, init_collector
+from scg_algorithms.rl.config import parse_learner_config
+from scg_algorithms.rl.counter import Count, add_count, zero_count
+from scg_algorithms.rl.envs import make_train_env
+from scg_algorithms.rl.networks import MLP, value_network
+from scg_algorithms.rl.normalization import RunningStats, normalize
+from scg_algorithms.rl.training import Learner, raw_key
 
 NAME = "ppo"
 
@@ -67,7 +67,7 @@ class RunnerState(NamedTuple):
 
     Attributes:
         params: ``{"actor": flax params, "critic": flax params, "log_std": (d,)}``. opt_state: optax state.
-        collector: ``algorithms.rl.collector.CollectorState`` (batched env state, observations to act on next,
+        collector: ``scg_algorithms.rl.collector.CollectorState`` (batched env state, observations to act on next,
         episode sums, the last episode means, the observation normaliser). key: raw PRNG key.
         env_steps: ``Count`` (exact past 2^31) of env steps so far.
     """
@@ -311,7 +311,7 @@ def make_train(config, env):
     Returns:
         ``train(key, params) -> (runner_state, metrics)``: ``config.num_iterations`` iterations from
         ``init(key, params)``; ``metrics`` is a dict of (num_iterations,) arrays (see ``update``; ``env_steps`` is an
-        ``algorithms.rl.counter.Count``, exact past 2^31: ``count_value`` gives the integers). Jit it once and
+        ``scg_algorithms.rl.counter.Count``, exact past 2^31: ``count_value`` gives the integers). Jit it once and
         ``jax.vmap`` it over keys for several seeds (``params`` unbatched, or batched with ``in_axes`` for
         sweeps).
     """

@@ -1,4 +1,4 @@
-"""Shared reinforcement-learning infrastructure for the JAX learners (``algorithms.ppo``, ``algorithms.sac``).
+"""Shared reinforcement-learning infrastructure for the JAX learners (``scg_algorithms.ppo``, ``scg_algorithms.sac``).
 
 - ``envs``: ``make_train_env(env, num_envs) -> TrainEnv``, N auto-resetting copies that take normalised actions in
   [-1, 1] and keep the final observation of a finished episode (for bootstrapping at a time limit), plus per-copy
@@ -15,5 +15,5 @@
 - ``checkpoint``: atomic save/load of any pytree with JSON metadata.
 - ``training``: the ``Learner`` description and the host driver ``run_training`` (progress bar or log lines, CSV,
   checkpoints, resume/extend/overwrite, save on Ctrl-C, final policy, learning-curve plot).
-- ``policy``: ``load_policy(directory, env, params)``, a saved policy as an ``algorithms.base.JaxController``.
+- ``policy``: ``load_policy(directory, env, params)``, a saved policy as an ``scg_algorithms.base.JaxController``.
 """

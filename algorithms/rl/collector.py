@@ -25,7 +25,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from algorithms.rl.envs import (
+from scg_algorithms.rl.envs import (
     EPISODE_METRICS,
     EpisodeStats,
     TrainEnv,
@@ -34,7 +34,7 @@ from algorithms.rl.envs import (
     initial_episode_means,
     update_episode_stats,
 )
-from algorithms.rl.normalization import RunningStats, init_stats, update_stats
+from scg_algorithms.rl.normalization import RunningStats, init_stats, update_stats
 
 
 class CollectorState(NamedTuple):

@@ -1,6 +1,6 @@
 """Config checks shared by the learners' ``Config`` dataclasses (``training.<algo>`` sections of a config file).
 
-A learner's ``Config`` declares its fields with ``algorithms.base.option`` and checks them across fields in
+A learner's ``Config`` declares its fields with ``scg_algorithms.base.option`` and checks them across fields in
 ``_check(path)``, built from the helpers here so that every learner reports a bad value the same way: a
 ``ValueError`` whose message starts with the dotted field name (``training.ppo.gamma: must be in [0, 1], got
 1.5``). ``parse_learner_config`` is the one entry point: a mapping (or ``None`` for the defaults) or a ``Config``
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from algorithms.base import parse_options, positive
+from scg_algorithms.base import parse_options, positive
 
 
 def parse_learner_config(cls, options, path: str):

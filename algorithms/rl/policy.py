@@ -9,19 +9,19 @@ import jax
 import jax.numpy as jnp
 import yaml
 
-from algorithms.base import JaxController, parse_options
-from algorithms.rl.checkpoint import load_checkpoint, load_metadata
-from algorithms.rl.envs import policy_action_to_input
-from algorithms.rl.training import POLICY_NAME
+from scg_algorithms.base import JaxController, parse_options
+from scg_algorithms.rl.checkpoint import load_checkpoint, load_metadata
+from scg_algorithms.rl.envs import policy_action_to_input
+from scg_algorithms.rl.training import POLICY_NAME
 
 
 def algorithm_module(algo: str, part: str):
-    """``Config`` or ``make_learner`` of the package ``algorithms.<algo>`` (top level, else its submodules)."""
-    package = importlib.import_module(f"algorithms.{algo}")
+    """``Config`` or ``make_learner`` of the package ``scg_algorithms.<algo>`` (top level, else its submodules)."""
+    package = importlib.import_module(f"scg_algorithms.{algo}")
     if hasattr(package, part):
         return getattr(package, part)
     submodule = {"Config": "config", "make_learner": "train"}[part]
-    return getattr(importlib.import_module(f"algorithms.{algo}.{submodule}"), part)
+    return getattr(importlib.import_module(f"scg_algorithms.{algo}.{submodule}"), part)
 
 
 def trained_system(meta: dict) -> str | None:

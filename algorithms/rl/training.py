@@ -1,6 +1,6 @@
 """The host driver of every JAX learner: compiled iterations in chunks, progress, CSV, checkpoints, final policy.
 
-A learner (``algorithms.ppo.make_learner``, ``algorithms.sac.make_learner``) is a ``Learner``: pure ``init`` and
+A learner (``scg_algorithms.ppo.make_learner``, ``scg_algorithms.sac.make_learner``) is a ``Learner``: pure ``init`` and
 ``update`` functions over a runner state (a pytree holding everything: network and optimiser state, observation
 statistics, env states, PRNG key). ``run_training`` compiles ``update`` repeated ``n`` times inside one
 ``lax.fori_loop`` (``n`` is a traced argument, so one compilation serves every chunk length), runs chunks of about a
@@ -13,7 +13,7 @@ Files written in ``out_dir``:
 - ``progress.csv``: one row per iteration: ``iteration``, ``env_steps``, ``wall_time_s`` then the learner's metrics
   (``episode_*`` are ``nan`` until the first episode has ended: there is nothing to average yet).
 - ``checkpoint.msgpack`` / ``checkpoint.json``: the runner state and where it stands (``resume=True`` reads them).
-- ``policy.msgpack`` / ``policy.json``: what ``algorithms.rl.policy.load_policy`` needs (algo, config, env config
+- ``policy.msgpack`` / ``policy.json``: what ``scg_algorithms.rl.policy.load_policy`` needs (algo, config, env config
   text, observation normaliser).
 - ``learning_curve.png``: ``plot_learning_curve`` of the CSV.
 """
@@ -34,9 +34,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from algorithms.rl.checkpoint import load_checkpoint, load_metadata, save_checkpoint
-from algorithms.rl.counter import Count, count_value
-from algorithms.rl.normalization import RunningStats
+from scg_algorithms.rl.checkpoint import load_checkpoint, load_metadata, save_checkpoint
+from scg_algorithms.rl.counter import Count, count_value
+from scg_algorithms.rl.normalization import RunningStats
 from scg_jax.files import write_atomic
 
 CSV_NAME = "progress.csv"
@@ -59,11 +59,11 @@ class Learner(NamedTuple):
     """A learning algorithm as pure functions (see the module docstring).
 
     Attributes:
-        name: ``"ppo"`` or ``"sac"`` (the package ``algorithms.<name>`` that rebuilds it).
-        config: the frozen hyperparameter dataclass (``algorithms.<name>.Config``).
+        name: ``"ppo"`` or ``"sac"`` (the package ``scg_algorithms.<name>`` that rebuilds it).
+        config: the frozen hyperparameter dataclass (``scg_algorithms.<name>.Config``).
         init: ``init(key, params) -> runner_state``; ``params`` unbatched ``EnvParams``.
         update: ``update(runner_state, params) -> (runner_state, metrics)``, one iteration; ``metrics`` a dict of
-            scalars (or ``algorithms.rl.counter.Count``s, exact integers) with at least ``env_steps`` (total so far,
+            scalars (or ``scg_algorithms.rl.counter.Count``s, exact integers) with at least ``env_steps`` (total so far,
             a ``Count``), ``episode_return``, ``episode_cost``, ``episode_rmse`` (means over the episodes finished
             in the iteration, the previous value when none did, NaN before the first) and the losses.
         num_iterations: iterations in the budget (``total_env_steps`` over the env steps per iteration).

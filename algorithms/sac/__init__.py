@@ -3,14 +3,14 @@ temperature, a JAX replay buffer, and the whole training loop as one jittable, v
 
 - ``Config`` / ``parse_config``: hyperparameters (``training.sac`` of a config file).
 - ``make_train(config, env) -> train(key, params)``: the whole budget in one pure function (jit, vmap over seeds).
-- ``make_learner(config, env) -> Learner``: for ``algorithms.rl.training.run_training`` (the CLI's host driver).
+- ``make_learner(config, env) -> Learner``: for ``scg_algorithms.rl.training.run_training`` (the CLI's host driver).
 - ``make_policy_from_config(config_dict, obs_size, action_size) -> (init, apply)``: rebuild a saved policy
-  (``algorithms.rl.policy.load_policy``).
+  (``scg_algorithms.rl.policy.load_policy``).
 - ``losses``, ``replay``: the pure loss functions and the replay buffer.
 """
 
-from algorithms.sac.config import Config, parse_config
-from algorithms.sac.train import (
+from scg_algorithms.sac.config import Config, parse_config
+from scg_algorithms.sac.train import (
     NAME,
     PolicyParams,
     RunnerState,

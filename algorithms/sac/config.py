@@ -17,9 +17,9 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from algorithms.base import option
-from algorithms.rl.config import check_budget, check_fields, layer_sizes, parse_learner_config
-from algorithms.rl.networks import ACTIVATIONS as _NETWORK_ACTIVATIONS
+from scg_algorithms.base import option
+from scg_algorithms.rl.config import check_budget, check_fields, layer_sizes, parse_learner_config
+from scg_algorithms.rl.networks import ACTIVATIONS as _NETWORK_ACTIVATIONS
 
 # The shared networks' activations, SAC's default first.
 ACTIVATIONS = ("relu", *(name for name in _NETWORK_ACTIVATIONS if name != "relu"))

@@ -4,7 +4,7 @@ Conventions: a batch has B transitions; actions live in [-1, 1]^nu as ``a = tanh
 ``u ~ N(mean, exp(log_std)^2)`` (the pre-squash sample ``u``); ``alpha`` is the entropy temperature; log-probs are
 of the squashed action ``a`` (nats). Every function is differentiable with ``jax.grad`` and has worked-number tests
 in ``tests/test_sac.py``. The tanh-Gaussian density and sampler are the learners' shared ones
-(``algorithms.rl.distributions``), re-exported here.
+(``scg_algorithms.rl.distributions``), re-exported here.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from algorithms.rl.distributions import (
+from scg_algorithms.rl.distributions import (
     log1m_tanh_sq,
     sample_tanh_gaussian,
     tanh_gaussian_log_prob,

@@ -1,7 +1,7 @@
 """Soft actor-critic in JAX: the whole training loop is one pure function of a key and the env params.
 
 One *iteration* collects ``rollout_steps`` control steps in each of the ``num_envs`` auto-resetting copies
-(``algorithms.rl.envs.TrainEnv``, actions in [-1, 1], through the learners' shared ``algorithms.rl.collector``,
+(``scg_algorithms.rl.envs.TrainEnv``, actions in [-1, 1], through the learners' shared ``scg_algorithms.rl.collector``,
 which also merges the observations into the running normaliser), writes the transitions to the replay buffer, then
 takes ``utd * num_envs * rollout_steps`` gradient steps. Each
 gradient step samples a batch uniformly from the buffer and updates, in this order, the twin critics (soft Bellman
@@ -12,7 +12,7 @@ target critics (``tau``). The first ``warmup_iterations`` act uniformly at rando
 
 ``make_train(config, env)(key, params)`` runs the budget with two ``lax.scan``-s (warm-up, learning): jit it, vmap
 it over keys for seeds. ``make_learner(config, env)`` exposes the same iteration to the host driver
-(``algorithms.rl.training.run_training``), choosing warm-up or learning with ``lax.cond`` on the iteration count.
+(``scg_algorithms.rl.training.run_training``), choosing warm-up or learning with ``lax.cond`` on the iteration count.
 """
 
 from __future__ import annotations
@@ -25,18 +25,18 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from algorithms.rl import envs as rl_envs
-from algorithms.rl.collector import ActOutput, CollectorState, collect, init_collector
-from algorithms.rl.counter import Count, add_count, count_at_least, zero_count
-from algorithms.rl.networks import QNetwork, TanhGaussianActor, twin_q
-from algorithms.rl.normalization import RunningStats, init_stats, normalize
-from algorithms.rl.training import Learner, raw_key
-from algorithms.sac import losses, replay
-from algorithms.sac.config import Config, parse_config
+from scg_algorithms.rl import envs as rl_envs
+from scg_algorithms.rl.collector import ActOutput, CollectorState, collect, init_collector
+from scg_algorithms.rl.counter import Count, add_count, count_at_least, zero_count
+from scg_algorithms.rl.networks import QNetwork, TanhGaussianActor, twin_q
+from scg_algorithms.rl.normalization import RunningStats, init_stats, normalize
+from scg_algorithms.rl.training import Learner, raw_key
+from scg_algorithms.sac import losses, replay
+from scg_algorithms.sac.config import Config, parse_config
 
 NAME = "sac"
 
-# The shared networks (``algorithms.rl.networks``) under SAC's names.
+# The shared networks (``scg_algorithms.rl.networks``) under SAC's names.
 Actor = TanhGaussianActor
 Critic = QNetwork
 
@@ -73,7 +73,7 @@ def make_policy_fn(config: Config, action_size: int) -> Callable:
 
 
 def make_policy_from_config(config_dict: Mapping | Config, obs_size: int, action_size: int):
-    """Rebuild a saved SAC policy: ``(init, apply)`` for ``algorithms.rl.policy.load_policy``.
+    """Rebuild a saved SAC policy: ``(init, apply)`` for ``scg_algorithms.rl.policy.load_policy``.
 
     Args:
         config_dict: the saved ``Config.to_dict()`` (or a ``Config``). obs_size, action_size: of the env.
@@ -115,7 +115,7 @@ class RunnerState(NamedTuple):
     Attributes:
         actor, critic, target_critic, log_alpha, actor_opt, critic_opt, alpha_opt: as in ``Learning``.
         buffer: ``replay.ReplayBuffer`` of dicts ``obs, action, reward, next_obs, terminated, cost``.
-        collector: ``algorithms.rl.collector.CollectorState`` (batched env state, observations to act on next,
+        collector: ``scg_algorithms.rl.collector.CollectorState`` (batched env state, observations to act on next,
             episode sums, the last episode means, the normaliser of the observations collected so far).
         key: raw PRNG key. iteration, env_steps, grad_steps: ``Count``s (exact past 2^31).
     """
@@ -334,8 +334,8 @@ def make_train(config: Config | Mapping | None, env) -> Callable:
 
     Returns:
         ``train``: ``key`` a PRNG key, ``params`` unbatched ``EnvParams``; ``metrics`` a dict of
-        (num_iterations,) arrays: ``env_steps``, ``grad_steps`` (``algorithms.rl.counter.Count``s of (num_iterations,)
-        uint32 words; ``count_value`` gives the exact integers), ``episode_return``, ``episode_cost``,
+        (num_iterations,) arrays: ``env_steps``, ``grad_steps`` (``scg_algorithms.rl.counter.Count``s of
+        (num_iterations,) uint32 words; ``count_value`` gives the exact integers), ``episode_return``, ``episode_cost``,
         ``episode_rmse``, ``episode_length``, ``episodes_finished`` and the means over the iteration's gradient
         steps of ``critic_loss``, ``actor_loss``, ``alpha_loss``, ``alpha``, ``entropy``, ``q_mean`` (0 during
         warm-up).
@@ -361,7 +361,7 @@ def policy_params(state: RunnerState) -> PolicyParams:
 
 
 def make_learner(config: Config | Mapping | None, env):
-    """``algorithms.rl.training.Learner`` for the host driver (``run_training``).
+    """``scg_algorithms.rl.training.Learner`` for the host driver (``run_training``).
 
     ``update`` is one iteration; warm-up or learning is chosen from ``runner_state.iteration``, so a chain of
     ``num_iterations`` updates is the same computation as ``make_train``.

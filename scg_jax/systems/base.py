@@ -22,7 +22,7 @@ class WrenchAllocation:
     The dynamics are affine in the motor thrusts ``u``; at a level state with zero rates, the mass times the
     vertical acceleration is the collective thrust and each body angular acceleration times its moment of inertia
     the torque about that axis. These indices turn the input Jacobian of ``dynamics`` into the allocation
-    ``[T, M...] = A u`` (``algorithms.pid.allocation_matrix``), so no geometry is retyped outside the system.
+    ``[T, M...] = A u`` (``scg_algorithms.pid.allocation_matrix``), so no geometry is retyped outside the system.
 
     Attributes:
         vertical_acceleration: index in ``x_dot`` of the vertical acceleration (m/s^2).

@@ -214,7 +214,7 @@ def _make_policy(env, params, args) -> tuple[Callable, np.ndarray | None]:
                 )
             gain = np.asarray(args.gain, dtype=np.float64).reshape(env.nu, env.nx)
         else:
-            from algorithms.lqr import lqr_gain_about
+            from scg_algorithms.lqr import lqr_gain_about
 
             x0, u0 = jax.jit(env.reference_at)(0, params)
             gain = lqr_gain_about(env, params, np.asarray(x0), np.asarray(u0))
@@ -381,7 +381,7 @@ def _add_controller_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _add_eval_parser(subparsers) -> argparse.ArgumentParser:
-    from algorithms import CONTROLLERS
+    from scg_algorithms import CONTROLLERS
 
     parser = subparsers.add_parser(
         "eval",
@@ -408,7 +408,7 @@ def _add_eval_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def _add_compare_parser(subparsers) -> argparse.ArgumentParser:
-    from algorithms import CONTROLLERS
+    from scg_algorithms import CONTROLLERS
 
     parser = subparsers.add_parser(
         "compare",
@@ -431,7 +431,7 @@ def _add_compare_parser(subparsers) -> argparse.ArgumentParser:
 
 def _build_controller(spec: str, env, params, cfg, prior_scale: float):
     """A controller from a registered name (options from ``cfg.controllers``) or a trained policy's folder."""
-    from algorithms import CONTROLLERS, make_controller
+    from scg_algorithms import CONTROLLERS, make_controller
     from scg_jax.env import prior_params
 
     if not (np.isfinite(prior_scale) and prior_scale > 0):
@@ -446,7 +446,7 @@ def _build_controller(spec: str, env, params, cfg, prior_scale: float):
     if path.is_dir() and _is_gp_mpc_run(path):
         return _load_gp_mpc_run(path, env, params, cfg, prior_scale)
     if path.is_dir():
-        from algorithms.rl.policy import load_policy
+        from scg_algorithms.rl.policy import load_policy
 
         if prior_scale != 1.0:
             raise _UsageError("argument --prior-scale: a trained policy has no model to scale; leave it at 1")
@@ -461,7 +461,7 @@ def _build_controller(spec: str, env, params, cfg, prior_scale: float):
 
 
 def _is_gp_mpc_run(path: Path) -> bool:
-    from algorithms.gp_mpc.run import is_run
+    from scg_algorithms.gp_mpc.run import is_run
 
     return is_run(path)
 
@@ -470,7 +470,7 @@ def _load_gp_mpc_run(path: Path, env, params, cfg, prior_scale: float):
     """The GP-MPC learned in ``path``, on the prior it was learned with (``--prior-scale`` must agree or stay 1)."""
     import json
 
-    from algorithms.gp_mpc.run import RUN_NAME, load_run
+    from scg_algorithms.gp_mpc.run import RUN_NAME, load_run
     from scg_jax.env import prior_params
 
     saved_scale = float(json.loads((path / f"{RUN_NAME}.json").read_text())["prior_scale"])
@@ -492,7 +492,7 @@ def _evaluate(controller, env, params, args, console):
 
     import jax
 
-    from algorithms.evaluation import evaluate
+    from scg_algorithms.evaluation import evaluate
 
     waiting = (
         console.status(f"compiling and running {controller.name} on {args.episodes} episodes")
@@ -573,7 +573,7 @@ def _jsonable(value):
 
 
 def _run_eval(args: argparse.Namespace, console) -> int:
-    from algorithms.evaluation import evaluation_record
+    from scg_algorithms.evaluation import evaluation_record
     from scg_jax.plotting import plot_rollout
 
     if args.out.suffix != ".json":
@@ -603,7 +603,7 @@ def _run_eval(args: argparse.Namespace, console) -> int:
 
 
 def _run_compare(args: argparse.Namespace, console) -> int:
-    from algorithms.evaluation import evaluation_record
+    from scg_algorithms.evaluation import evaluation_record
 
     env, params, cfg = _make_env(args)
     specs = [item.strip() for item in args.controllers.split(",") if item.strip()]
@@ -729,8 +729,8 @@ def _train_command_line(args: argparse.Namespace, **changes) -> str:
 def _check_train_folder(args: argparse.Namespace) -> None:
     """Refuse, naming the flags, a --out that holds a run without --resume/--overwrite, and a --resume of another
     algorithm's run."""
-    from algorithms.rl.checkpoint import load_metadata
-    from algorithms.rl.training import CHECKPOINT_NAME, existing_run_files
+    from scg_algorithms.rl.checkpoint import load_metadata
+    from scg_algorithms.rl.training import CHECKPOINT_NAME, existing_run_files
 
     existing = existing_run_files(args.out)
     checkpoint = args.out / f"{CHECKPOINT_NAME}.json"
@@ -761,10 +761,10 @@ def _run_train(args: argparse.Namespace, console) -> int:
         raise _UsageError(f"argument --prior-scale: only gp_mpc learns on a prior model; {args.algo} has none")
     import jax
 
-    from algorithms.base import parse_options
-    from algorithms.evaluation import evaluate, evaluation_record
-    from algorithms.rl.policy import algorithm_module, load_policy
-    from algorithms.rl.training import TrainingInterrupted, run_training
+    from scg_algorithms.base import parse_options
+    from scg_algorithms.evaluation import evaluate, evaluation_record
+    from scg_algorithms.rl.policy import algorithm_module, load_policy
+    from scg_algorithms.rl.training import TrainingInterrupted, run_training
     from scg_jax.config import dump_config
 
     env, params, cfg = _make_env(args)
@@ -845,16 +845,16 @@ def _run_train(args: argparse.Namespace, console) -> int:
 
 
 def _run_train_gp_mpc(args: argparse.Namespace, console) -> int:
-    """``train --algo gp_mpc``: the learning loop of ``algorithms.gp_mpc.controller.learn`` with the config's
+    """``train --algo gp_mpc``: the learning loop of ``scg_algorithms.gp_mpc.controller.learn`` with the config's
     ``controllers.gp_mpc`` options, then a final evaluation; writes gp_mpc.json/npz, the learning curve and
     metrics.json."""
     import jax
 
-    from algorithms.base import parse_options
-    from algorithms.evaluation import evaluate, evaluation_record
-    from algorithms.gp_mpc.controller import PATH, Options, learn
-    from algorithms.gp_mpc.run import RUN_NAME, save_run, write_learning_curve
-    from algorithms.rl.training import existing_run_files, rmse_label
+    from scg_algorithms.base import parse_options
+    from scg_algorithms.evaluation import evaluate, evaluation_record
+    from scg_algorithms.gp_mpc.controller import PATH, Options, learn
+    from scg_algorithms.gp_mpc.run import RUN_NAME, save_run, write_learning_curve
+    from scg_algorithms.rl.training import existing_run_files, rmse_label
     from scg_jax.config import dump_config
     from scg_jax.env import prior_params
 
