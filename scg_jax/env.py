@@ -300,11 +300,9 @@ class Env:
         Example: ``params = env.with_physics(env.default_params, pole_half_length=0.6)``.
         """
         allowed = [f.name for f in dataclasses.fields(params.physics)]
-        for name in fields:
-            if name not in allowed:
-                raise ValueError(
-                    f"physics.{name}: unknown parameter of {self.system.name}; allowed are {', '.join(allowed)}"
-                )
+        V.check_keys(fields, "physics", allowed, what="parameter", where=f"of {self.system.name}")
+        # Checked at the precision given (messages quote the values as written), then stored in the env's dtype.
+        self.system.validate_params(params.physics.replace(**{k: np.asarray(v, float) for k, v in fields.items()}))
         dtype = jnp.zeros(()).dtype
         physics = params.physics.replace(**{name: jnp.asarray(value, dtype) for name, value in fields.items()})
         return self.validate(params.replace(physics=physics))
