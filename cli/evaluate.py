@@ -1,0 +1,235 @@
+"""``scg-jax eval`` and ``compare``: controllers (registered names, trained policy folders, learned GP-MPC
+folders) on the same episodes through the evaluation harness; JSON, trajectories (.npz) and a plot."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from scg_cli.common import (
+    OUT_CHECKED,
+    UsageError,
+    add_env_arguments,
+    check_output,
+    env_arrays,
+    jsonable,
+    make_env,
+    positive_int,
+    summary_table,
+)
+from scg_jax.files import write_atomic, write_json
+
+
+def _add_controller_arguments(parser: argparse.ArgumentParser) -> None:
+    run = parser.add_argument_group("evaluation")
+    run.add_argument(
+        "--prior-scale",
+        type=float,
+        default=1.0,
+        help="the controller's model has every inertial parameter times this factor (default: 1, the true plant)",
+    )
+    run.add_argument("--episodes", type=positive_int, default=16, help="episodes, run in parallel (default: 16)")
+    run.add_argument("--seed", type=int, default=0, help="PRNG seed (default: 0)")
+
+
+def add_eval_parser(subparsers) -> argparse.ArgumentParser:
+    from scg_algorithms import CONTROLLERS
+
+    parser = subparsers.add_parser(
+        "eval",
+        help="evaluate a controller or a trained policy on N episodes and save metrics, data and a plot",
+        description=(
+            "Evaluate one controller on --episodes episodes with the paper's metrics (RMSE, its std, worst-case "
+            "RMSE as CVaR at 0.5, failure rate, steps in violation, return, length, compute time per step). The "
+            "controller's options come from the config's controllers.NAME section. Writes --out (JSON), and the "
+            "trajectories (.npz) and a plot (.png) next to it."
+        ),
+    )
+    add_env_arguments(parser)
+    parser.add_argument(
+        "--controller",
+        required=True,
+        metavar="NAME|DIR",
+        help=f"controller name ({', '.join(CONTROLLERS)}) or the folder of a policy written by scg-jax train",
+    )
+    _add_controller_arguments(parser)
+    parser.add_argument(
+        "--out", type=Path, required=True, metavar="FILE.json", help=f"metrics JSON to write{OUT_CHECKED}"
+    )
+    return parser
+
+
+def add_compare_parser(subparsers) -> argparse.ArgumentParser:
+    from scg_algorithms import CONTROLLERS
+
+    parser = subparsers.add_parser(
+        "compare",
+        help="evaluate several controllers on one config and print them side by side",
+        description="Evaluate each controller as scg-jax eval does, on the same episodes (same seed).",
+    )
+    add_env_arguments(parser)
+    parser.add_argument(
+        "--controllers",
+        required=True,
+        metavar="A,B,...",
+        help=f"comma-separated controller names ({', '.join(CONTROLLERS)}) and/or policy folders",
+    )
+    _add_controller_arguments(parser)
+    parser.add_argument(
+        "--out", type=Path, metavar="FILE.json", help=f"write every controller's metrics here{OUT_CHECKED}"
+    )
+    return parser
+
+
+def _build_controller(spec: str, env, params, cfg, prior_scale: float):
+    """A controller from a registered name (options from ``cfg.controllers``) or a trained policy's folder."""
+    from scg_algorithms import CONTROLLERS, make_controller
+    from scg_jax.env import prior_params
+
+    if not (np.isfinite(prior_scale) and prior_scale > 0):
+        raise UsageError(f"argument --prior-scale: must be a positive number, got {prior_scale!r}")
+    if spec in CONTROLLERS:
+        prior = params if prior_scale == 1.0 else prior_params(env, params, prior_scale)
+        try:
+            return make_controller(spec, env, prior, cfg.controllers.get(spec))
+        except ValueError as error:
+            raise UsageError(str(error)) from None
+    path = Path(spec)
+    if path.is_dir() and _is_gp_mpc_run(path):
+        return _load_gp_mpc_run(path, env, params, cfg, prior_scale)
+    if path.is_dir():
+        from scg_algorithms.rl.policy import load_policy
+
+        if prior_scale != 1.0:
+            raise UsageError("argument --prior-scale: a trained policy has no model to scale; leave it at 1")
+        try:
+            return load_policy(path, env, params)
+        except (ValueError, OSError) as error:
+            raise UsageError(f"argument --controller: {error}") from None
+    raise UsageError(
+        f"argument --controller: {spec!r} is neither a controller name ({', '.join(CONTROLLERS)}) nor a policy "
+        "folder written by scg-jax train"
+    )
+
+
+def _is_gp_mpc_run(path: Path) -> bool:
+    from scg_algorithms.gp_mpc.run import is_run
+
+    return is_run(path)
+
+
+def _load_gp_mpc_run(path: Path, env, params, cfg, prior_scale: float):
+    """The GP-MPC learned in ``path``, on the prior it was learned with (``--prior-scale`` must agree or stay 1)."""
+    import json
+
+    from scg_algorithms.gp_mpc.run import RUN_NAME, load_run
+    from scg_jax.env import prior_params
+
+    saved_scale = float(json.loads((path / f"{RUN_NAME}.json").read_text())["prior_scale"])
+    if prior_scale not in (1.0, saved_scale):
+        raise UsageError(
+            f"argument --prior-scale: {path} learned its GP on a prior of scale {saved_scale:g}; leave --prior-scale "
+            f"at 1 or give {saved_scale:g}"
+        )
+    prior = params if saved_scale == 1.0 else prior_params(env, params, saved_scale)
+    try:
+        return load_run(path, env, prior, cfg.controllers.get("gp_mpc"))
+    except (ValueError, OSError) as error:
+        raise UsageError(f"argument --controller: {error}") from None
+
+
+def _evaluate(controller, env, params, args, console):
+    """``evaluate`` with a spinner (JAX controllers: compile and run) or a progress bar (host controllers)."""
+    import contextlib
+
+    import jax
+
+    from scg_algorithms.evaluation import evaluate
+
+    waiting = (
+        console.status(f"compiling and running {controller.name} on {args.episodes} episodes")
+        if controller.is_jax
+        else contextlib.nullcontext()
+    )
+    with waiting:
+        return evaluate(
+            env, params, controller, jax.random.key(args.seed), args.episodes, progress=not controller.is_jax
+        )
+
+
+def _evaluation_extra(env, cfg, args, controller) -> dict:
+    from scg_jax.config import dump_config
+
+    return {
+        "system": env.system.name,
+        "task": env.task,
+        "config_file": None if args.config is None else str(args.config),
+        "config": dump_config(cfg),
+        "overrides": list(args.set),
+        "prior_scale": args.prior_scale,
+        "seed": args.seed,
+        "num_steps": env.num_steps,
+        "controller_info": jsonable(getattr(controller, "info", {})),
+    }
+
+
+def run_eval(args: argparse.Namespace, console) -> int:
+    from scg_algorithms.evaluation import evaluation_record
+    from scg_jax.plotting import plot_rollout
+
+    if args.out.suffix != ".json":
+        raise UsageError(f"argument --out: expected a .json file name, got {str(args.out)!r}")
+    check_output(args.out, "file")
+    env, params, cfg = make_env(args)
+    controller = _build_controller(args.controller, env, params, cfg, args.prior_scale)
+    evaluation = _evaluate(controller, env, params, args, console)
+    npz_path, png_path = args.out.with_suffix(".npz"), args.out.with_suffix(".png")
+    data = {
+        **env_arrays(env, params),
+        **{name: value for name, value in evaluation.trajectory.items() if name not in ("x", "x_ref")},
+        "x": evaluation.trajectory["x"][:-1],
+        "x_final": evaluation.trajectory["x"][-1],
+        # The plot draws one reference; copies share it unless the params were a sweep.
+        "x_ref": evaluation.trajectory["x_ref"][:, 0],
+        "controller": np.asarray(controller.name),
+    }
+    write_atomic(npz_path, lambda file: np.savez_compressed(file, **data))
+    record = evaluation_record(evaluation, _evaluation_extra(env, cfg, args, controller))
+    write_json(args.out, record)
+    plot_rollout(npz_path, png_path)
+    title = f"{env.system.name} {env.task} | {controller.name} | {args.episodes} episodes x {env.num_steps} steps"
+    console.print(summary_table(title, {controller.name: evaluation.summary}))
+    console.print(f"wrote {args.out}, {npz_path}, {png_path}")
+    return 0
+
+
+def run_compare(args: argparse.Namespace, console) -> int:
+    from scg_algorithms.evaluation import evaluation_record
+
+    env, params, cfg = make_env(args)
+    specs = [item.strip() for item in args.controllers.split(",") if item.strip()]
+    if not specs:
+        raise UsageError("argument --controllers: expected at least one controller name or policy folder")
+    if len(set(specs)) != len(specs):
+        raise UsageError(f"argument --controllers: a controller is listed twice: {args.controllers}")
+    if args.out is not None and args.out.suffix != ".json":
+        raise UsageError(f"argument --out: expected a .json file name, got {str(args.out)!r}")
+    if args.out is not None:
+        check_output(args.out, "file")
+    controllers = [_build_controller(spec, env, params, cfg, args.prior_scale) for spec in specs]
+    records, summaries = {}, {}
+    for spec, controller in zip(specs, controllers, strict=True):
+        label = controller.name if spec == controller.name else f"{controller.name} ({Path(spec).name})"
+        evaluation = _evaluate(controller, env, params, args, console)
+        summaries[label] = evaluation.summary
+        records[label] = evaluation_record(evaluation, {"controller_info": jsonable(getattr(controller, "info", {}))})
+    title = f"{env.system.name} {env.task} | {args.episodes} episodes x {env.num_steps} steps | seed {args.seed}"
+    console.print(summary_table(title, summaries))
+    if args.out is not None:
+        extra = _evaluation_extra(env, cfg, args, controllers[0])
+        extra.pop("controller_info")
+        write_json(args.out, {**extra, "controllers": records})
+        console.print(f"wrote {args.out}")
+    return 0
