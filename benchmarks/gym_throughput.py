@@ -39,7 +39,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from machine import load_average, print_machine, run_record  # benchmarks/machine.py, beside this script
+from machine import (  # benchmarks/machine.py, beside this script
+    load_average,
+    print_machine,
+    run_record,
+    write_markdown_table,
+)
 from rich import box
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -52,6 +57,7 @@ from scg_jax.files import write_json
 TARGET_VECTOR_STEPS_PER_S = 1_000_000.0
 TARGET_VECTOR_OVER_FUNCTIONAL = 0.5
 TARGET_CORES = 2
+DEFAULT_MARKDOWN = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "gym_throughput.md"
 DEFAULT_JSON = Path(__file__).resolve().parent / "results" / "gym_throughput.json"
 
 
@@ -71,6 +77,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, default=DEFAULT_JSON, help="where to write the results")
     parser.add_argument("--quick", action="store_true", help="smoke run: 256 copies, 20 steps, 2 repeats")
+    parser.add_argument(
+        "--markdown", type=Path, default=None, help=f"generated table [default: {DEFAULT_MARKDOWN}; none with --quick]"
+    )
     args = parser.parse_args(argv)
     if args.quick:
         args.num_envs, args.steps, args.single_steps, args.repeats = [256], 20, 200, 2
@@ -291,6 +300,18 @@ def main(argv=None) -> int:
 
     write_json(args.json, {**meta, "rows": rows, "targets": targets})
     console.print(f"\nwrote {args.json}", highlight=False)
+    markdown = args.markdown or (None if args.quick else DEFAULT_MARKDOWN)
+    if markdown is not None:
+        write_markdown_table(
+            markdown,
+            f"Gymnasium throughput ({env_id})",
+            meta,
+            ["loop", "how", "copies", "steps/s (median)", "/ functional env"],
+            [[r["loop"], r["description"], r["copies"], r["steps_per_s"], r["over_functional"]] for r in rows],
+            notes=f"Median of {args.repeats} alternating timed runs; the functional env is the baseline measured in "
+            "the same run. vector: NEXT_STEP autoreset, numpy in and out; single: one env, dispatch-bound.",
+        )
+        console.print(f"wrote {markdown}", highlight=False)
     return 0
 
 
