@@ -18,17 +18,31 @@ point of the same model:
 
 All arrays are numpy float64 (the controllers cast them to their dtype); units are the state's and the input's
 (SI: m, rad, m/s, N). Errors name ``<path>.<field>`` of the controller's options.
+
+``MPCOptions`` holds the option fields the MPCs' ``Options`` (linear, nonlinear, GP-MPC) start with.
 """
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-from scg_algorithms.base import weight_diagonal
+from scg_algorithms.base import option, weight_diagonal
 
 LINEARIZE_ABOUT = ("auto", "goal", "reference")
 TERMINAL_WEIGHTS = ("dare", "stage")
 DISCRETIZATIONS = ("env", "rk4")
+
+
+@dataclasses.dataclass(frozen=True)
+class MPCOptions:
+    """The first fields of every MPC's ``Options`` (``scg_algorithms.mpc.linear``, ``scg_algorithms.mpc.nonlinear``,
+    ``scg_algorithms.gp_mpc.controller``): the horizon and the diagonal weights, passed to ``cost_weights``."""
+
+    horizon: int = option(20, "prediction horizon H, control steps")
+    q_diag: tuple | None = option(None, "diagonal state weight (nx,); default: the prior's Q")
+    r_diag: tuple | None = option(None, "diagonal input weight (nu,); default: the prior's R")
 
 
 def cost_weights(env, prior_params, q_diag, r_diag, path: str, positive_definite_r: bool = True):

@@ -32,6 +32,17 @@ def _matrix(name: str, value, shape: tuple[int, int]) -> np.ndarray:
     return array
 
 
+def _riccati(caller: str, solve, A, B, Q, R) -> np.ndarray:
+    """The symmetric stabilising solution of scipy's ``solve`` (``solve_discrete_are`` or ``solve_continuous_are``);
+    a solver failure is a ValueError naming ``caller``."""
+    try:
+        P = solve(A, B, Q, R)
+    except (np.linalg.LinAlgError, ValueError) as error:
+        raise ValueError(f"{caller}: no stabilising Riccati solution ({error})") from error
+    # The solver returns P up to round-off asymmetry; symmetrising keeps x^T P x consistent for callers.
+    return 0.5 * (P + P.T)
+
+
 def discrete_lqr_gain(Ad, Bd, Q, R) -> tuple[np.ndarray, np.ndarray]:
     """Discrete LQR gain and Riccati solution.
 
@@ -61,12 +72,7 @@ def discrete_lqr_gain(Ad, Bd, Q, R) -> tuple[np.ndarray, np.ndarray]:
     Bd = _matrix("Bd", Bd, (nx, nu))
     Q = _matrix("Q", Q, (nx, nx))
     R = _matrix("R", R, (nu, nu))
-    try:
-        P = scipy.linalg.solve_discrete_are(Ad, Bd, Q, R)
-    except (np.linalg.LinAlgError, ValueError) as error:
-        raise ValueError(f"discrete_lqr_gain: no stabilising Riccati solution ({error})") from error
-    # The solver returns P up to round-off asymmetry; symmetrising keeps x^T P x consistent for callers.
-    P = 0.5 * (P + P.T)
+    P = _riccati("discrete_lqr_gain", scipy.linalg.solve_discrete_are, Ad, Bd, Q, R)
     K = np.linalg.solve(R + Bd.T @ P @ Bd, Bd.T @ P @ Ad)
     return K, P
 
@@ -115,11 +121,7 @@ def continuous_lqr_gain(A, B, Q, R) -> tuple[np.ndarray, np.ndarray]:
     A = _matrix("A", A, (nx, nx))
     Q = _matrix("Q", Q, (nx, nx))
     R = _matrix("R", R, (nu, nu))
-    try:
-        P = scipy.linalg.solve_continuous_are(A, B, Q, R)
-    except (np.linalg.LinAlgError, ValueError) as error:
-        raise ValueError(f"continuous_lqr_gain: no stabilising Riccati solution ({error})") from error
-    P = 0.5 * (P + P.T)
+    P = _riccati("continuous_lqr_gain", scipy.linalg.solve_continuous_are, A, B, Q, R)
     return np.linalg.solve(R, B.T @ P), P
 
 

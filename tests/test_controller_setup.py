@@ -13,17 +13,13 @@ from scg_algorithms.lqr import discrete_lqr_gain, make_lqr
 from scg_algorithms.mpc.linear import build_problem
 from scg_algorithms.mpc.nonlinear import make_nonlinear_mpc
 from scg_jax.env import prior_params
+from tests.control_helpers import cartpole_with_full_q
 
 
 @pytest.fixture(scope="module")
 def cartpole_full_q():
-    """The cart-pole with a non-diagonal state weight (x with theta, x_dot with theta_dot; eigenvalues 0.2-1.8)."""
-    env = scg_jax.make("cartpole")
-    Q = np.eye(4)
-    Q[0, 2] = Q[2, 0] = 0.8
-    Q[1, 3] = Q[3, 1] = 0.5
-    params = env.default_params.replace(Q=jnp.asarray(Q, env.default_params.Q.dtype))
-    return env, params, Q
+    """The cart-pole with a non-diagonal state weight (``tests.control_helpers.cartpole_with_full_q``)."""
+    return cartpole_with_full_q()
 
 
 def test_every_model_based_controller_gets_the_full_weights(cartpole_full_q):

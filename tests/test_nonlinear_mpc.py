@@ -10,6 +10,7 @@ from scg_algorithms.base import Reference
 from scg_algorithms.evaluation import evaluate
 from scg_algorithms.lqr import make_lqr
 from scg_algorithms.mpc.nonlinear import make_nonlinear_mpc
+from tests.control_helpers import cartpole_with_full_q
 
 
 def _reference(env, params):
@@ -59,11 +60,7 @@ def test_a_full_state_weight_is_optimised_as_lqr_optimises_it():
     # Issue 11: the NMPC kept only the diagonal of Q, so it optimised another cost than LQR and the linear MPC.
     # With off-diagonal weights (x with theta, x_dot with theta_dot; eigenvalues 0.2 to 1.8) its first input near
     # the goal must be LQR's for the *full* Q, which here is far from LQR's for diag(Q).
-    env = scg_jax.make("cartpole")
-    Q = np.eye(4)
-    Q[0, 2] = Q[2, 0] = 0.8
-    Q[1, 3] = Q[3, 1] = 0.5
-    params = env.default_params.replace(Q=jnp.asarray(Q, env.default_params.Q.dtype))
+    env, params, Q = cartpole_with_full_q()
     reference = _reference(env, params)
     K_full = make_lqr(env, params).info["K"][0]
     K_diag = make_lqr(env, params, {"q_diag": np.diag(Q).tolist()}).info["K"][0]

@@ -35,12 +35,9 @@ _SHARED = ("horizon", "q_diag", "r_diag", "terminal_weight", "soft_constraints",
 
 
 @dataclasses.dataclass(frozen=True)
-class Options:
+class Options(setup.MPCOptions):
     """Options of GP-MPC (a config file's ``controllers.gp_mpc`` section): the MPC, the GP and the learning loop."""
 
-    horizon: int = option(20, "prediction horizon H, control steps")
-    q_diag: tuple | None = option(None, "diagonal state weight (nx,); default: the prior's Q")
-    r_diag: tuple | None = option(None, "diagonal input weight (nu,); default: the prior's R")
     terminal_weight: str = option("dare", "terminal weight: dare or stage (Q)", choices=("dare", "stage"))
     soft_constraints: bool = option(True, "soften the (tightened) env constraints with slack variables")
     soft_penalty: float = option(1e3, "weight of the slack penalty sum(s + s^2)")

@@ -72,12 +72,9 @@ CASADI_PATH = "controllers.linear_mpc_casadi"
 
 
 @dataclasses.dataclass(frozen=True)
-class Options:
+class Options(setup.MPCOptions):
     """Options of the linear MPC (``controllers.linear_mpc``; ``controllers.linear_mpc_casadi`` has the same fields)."""
 
-    horizon: int = option(20, "prediction horizon H, control steps")
-    q_diag: tuple | None = option(None, "diagonal state weight (nx,); default: the prior's Q")
-    r_diag: tuple | None = option(None, "diagonal input weight (nu,); default: the prior's R")
     terminal_weight: str = option(
         "dare",
         "terminal weight: the discrete Riccati solution P (LQR cost-to-go) or the stage weight Q",

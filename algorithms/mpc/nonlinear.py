@@ -74,12 +74,9 @@ def _numpy(dm) -> np.ndarray:
 
 
 @dataclasses.dataclass(frozen=True)
-class Options:
+class Options(setup.MPCOptions):
     """Options of the nonlinear MPC (a config file's ``controllers.nonlinear_mpc`` section)."""
 
-    horizon: int = option(20, "prediction horizon H, control steps")
-    q_diag: tuple | None = option(None, "diagonal state weight (nx,); default: the prior's Q")
-    r_diag: tuple | None = option(None, "diagonal input weight (nu,); default: the prior's R")
     terminal_weight: str = option(
         "dare",
         "terminal weight: dare (Riccati solution of the prior linearised about the goal) or stage (Q)",
