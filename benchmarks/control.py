@@ -47,7 +47,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from machine import load_average, print_machine, run_record  # benchmarks/machine.py, beside this script
+from machine import (  # benchmarks/machine.py, beside this script
+    load_average,
+    print_machine,
+    run_record,
+    write_markdown_table,
+)
 from rich import box
 from rich.console import Console
 from rich.table import Table
@@ -67,6 +72,7 @@ CONFIGS = {
 }
 # The original suite's IPOPT MPC, ms per control step (figures quoted in the issue; for scale only).
 ORIGINAL_NMPC_MS = {"cartpole": 6.0, "quadrotor_2d": 11.0}
+DEFAULT_MARKDOWN = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "control.md"
 DEFAULT_JSON = Path(__file__).resolve().parent / "results" / "control.json"
 FULL_DEFAULTS = {"episodes": 2, "batch": 1024, "repeats": 5, "min_time": 0.5}
 QUICK_DEFAULTS = {"episodes": 1, "batch": 256, "repeats": 2, "min_time": 0.05}
@@ -93,6 +99,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--stat", choices=("median", "min"), default="median", help="statistic over timed runs")
     parser.add_argument("--seed", type=int, default=0, help="seed of the episode and reset keys")
     parser.add_argument("--json", type=Path, default=DEFAULT_JSON, help="where to write the results")
+    parser.add_argument(
+        "--markdown", type=Path, default=None, help=f"generated table [default: {DEFAULT_MARKDOWN}; none with --quick]"
+    )
     parser.add_argument(
         "--quick", action="store_true", help="smoke run: 1 episode, batch 256, 2 repeats (explicit options still win)"
     )
@@ -330,6 +339,32 @@ def _table(title: str) -> Table:
     return Table(title=title, box=box.SIMPLE_HEAD, title_justify="left")
 
 
+def write_markdown(path, rows: list[dict], meta: dict) -> None:
+    """The generated page: nonlinear MPC per step against the reference formulation, batched linear MPC vs env."""
+    nonlinear = [
+        [r["system"], n["setting"], n["act_ms_median"], n["act_ms_p95"], n["reference_ms_median"],
+         n["ratio_to_reference"], f"~{ORIGINAL_NMPC_MS[r['system']]:g}", n["rmse"]]
+        for r in rows for n in r.get("nonlinear", [])
+    ]  # fmt: skip
+    linear = [
+        f"- {r['system']}: {r['linear']['mpc_solves_per_s']:,.0f} batched linear MPC solves/s at "
+        f"{meta['config']['batch']:,} copies, env {r['linear']['env_steps_per_s']:,.0f} steps/s, ratio "
+        f"{r['linear']['mpc_over_env']:.4f}"
+        for r in rows
+        if "linear" in r
+    ]
+    write_markdown_table(
+        path,
+        f"MPC cost (CasADi {cs.__version__}, horizon {meta['config']['horizon']})",
+        meta,
+        ["system", "setting", "act ms median", "act ms p95", "reference ms median", "ours / reference",
+         "original ms (quoted)", "RMSE"],
+        nonlinear,
+        notes="reference: the original suite's Opti formulation, built in the same run with the same model, weights "
+        "and constraints, solved from the same states. Warm steps only.\n\n" + "\n".join(linear),
+    )  # fmt: skip
+
+
 def print_report(console: Console, rows: list[dict], meta: dict) -> None:
     cfg = meta["config"]
     where = f"{meta['device']['platform']} ({meta['device']['device_kind']}), {meta['cpu_count']} CPU cores"
@@ -460,6 +495,10 @@ def main(argv=None) -> int:
     console.print()
     print_report(console, rows, meta)
     write_json(args.json, {**meta, "rows": rows})
+    markdown = args.markdown or (None if args.quick else DEFAULT_MARKDOWN)
+    if markdown is not None:
+        write_markdown(markdown, rows, meta)
+        console.print(f"table written to {markdown}", highlight=False)
     console.print(f"\ntotal runtime {meta['total_runtime_s']:.1f} s; results written to {args.json}", highlight=False)
     return 0
 
