@@ -51,7 +51,9 @@ SETTINGS = {
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--systems", nargs="+", default=list(SETTINGS), choices=list(SETTINGS))
+    # The 2D quadrotor's setting is not validated yet (its episodes crash at 10 Hz from the default initial states),
+    # so it runs only when asked for.
+    parser.add_argument("--systems", nargs="+", default=["cartpole"], choices=list(SETTINGS))
     parser.add_argument("--horizon", type=int, default=20, help="MPC horizon, control steps")
     parser.add_argument("--inducing", type=int, default=30, help="inducing points of the GP")
     parser.add_argument("--train-episodes", type=int, default=4, help="episodes of data for the GP")
