@@ -325,18 +325,19 @@ def measure_linear(env, params, args) -> dict:
 
 
 # --------------------------------------------------------------------------------------------- report
+def _report_table(title: str) -> Table:
+    """An empty report table with a left-aligned ``title``."""
+    return Table(title=title, box=box.SIMPLE_HEAD, title_justify="left")
+
+
 def print_report(console: Console, rows: list[dict], meta: dict) -> None:
     cfg = meta["config"]
     where = f"{meta['device']['platform']} ({meta['device']['device_kind']}), {meta['cpu_count']} CPU cores"
     nonlinear = [r for r in rows if "nonlinear" in r]
     if nonlinear:
-        table = Table(
-            title=(
-                f"Nonlinear MPC (CasADi {cs.__version__} + IPOPT), horizon {cfg['horizon']}, ms per control step "
-                f"(median / p95), against the reference formulation on the same states; {where}"
-            ),
-            box=box.SIMPLE_HEAD,
-            title_justify="left",
+        table = _report_table(
+            f"Nonlinear MPC (CasADi {cs.__version__} + IPOPT), horizon {cfg['horizon']}, ms per control step "
+            f"(median / p95), against the reference formulation on the same states; {where}"
         )
         headers = ("system", "setting", "steps", "IPOPT ms", "act ms", "reference ms", "ours / reference")
         headers += ("iterations ours / ref", "max |du| N", "original ms", "failures", "rmse")
@@ -368,13 +369,9 @@ def print_report(console: Console, rows: list[dict], meta: dict) -> None:
         )
     linear = [r for r in rows if "linear" in r]
     if linear:
-        table = Table(
-            title=(
-                f"Batched linear MPC (qpax), horizon {cfg['horizon']}, {cfg['batch']:,} copies, one jitted vmapped "
-                f"act per call, {cfg['dtype']}; {where}"
-            ),
-            box=box.SIMPLE_HEAD,
-            title_justify="left",
+        table = _report_table(
+            f"Batched linear MPC (qpax), horizon {cfg['horizon']}, {cfg['batch']:,} copies, one jitted vmapped "
+            f"act per call, {cfg['dtype']}; {where}"
         )
         for header in ("system", "QP size", "MPC solves/s", "us/solve", "env steps/s", "MPC/env", "MPC compile s",
                        "failed solves"):  # fmt: skip
