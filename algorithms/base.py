@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import numbers
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, ClassVar, NamedTuple, Protocol, runtime_checkable
 
 from scg_jax import validation as V
@@ -152,6 +152,26 @@ def parse_options(cls, options: Mapping | None, path: str):
 def positive(path: str, value) -> None:
     """Raise ``FieldError`` (a ValueError) naming ``path`` unless ``value > 0`` (``scg_jax.validation.positive``)."""
     V.positive(value, path)
+
+
+def check_fields(
+    config,
+    path: str,
+    *,
+    positive_fields: Iterable[str] = (),
+    nonnegative: Iterable[str] = (),
+    closed_unit: Iterable[str] = (),
+) -> None:
+    """Check groups of ``config``'s fields (an ``Options`` dataclass, errors named ``<path>.<field>``): ``> 0``,
+    ``>= 0``, in ``[0, 1]``."""
+    for name in positive_fields:
+        positive(f"{path}.{name}", getattr(config, name))
+    for name in nonnegative:
+        if getattr(config, name) < 0:
+            raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(config, name)!r}")
+    for name in closed_unit:
+        if not 0.0 <= getattr(config, name) <= 1.0:
+            raise ValueError(f"{path}.{name}: must be in [0, 1], got {getattr(config, name)!r}")
 
 
 def weight_diagonal(path: str, value, default, n: int):

@@ -91,6 +91,13 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 # --------------------------------------------------------------------------------------------- the three loops
+def _timed(fn, *args):
+    """``(fn(*args), wall seconds of the call)``."""
+    t = time.perf_counter()
+    result = fn(*args)
+    return result, time.perf_counter() - t
+
+
 class VectorLoop:
     def __init__(self, env_id: str, num_envs: int, args):
         self.envs = gymnasium.make_vec(env_id, num_envs=num_envs)
@@ -98,18 +105,17 @@ class VectorLoop:
         nu = self.envs.single_action_space.shape[0]
         self.actions = np.full((num_envs, nu), args.action, np.float32)
         self.envs.reset(seed=args.seed)
-        t = time.perf_counter()
-        self.envs.step(self.actions)
-        self.first_call_s = time.perf_counter() - t
+        _, self.first_call_s = _timed(self.envs.step, self.actions)
         self.episodes = 0
 
     def run(self) -> float:
+        return _timed(self._steps)[1] / (self.steps * self.envs.num_envs)
+
+    def _steps(self) -> None:
         envs, actions = self.envs, self.actions
-        t = time.perf_counter()
         for _ in range(self.steps):
             obs, reward, terminated, truncated, info = envs.step(actions)
             self.episodes += int(np.count_nonzero(terminated | truncated))
-        return (time.perf_counter() - t) / (self.steps * envs.num_envs)
 
 
 class FunctionalLoop:
@@ -135,17 +141,18 @@ class FunctionalLoop:
             return obs, state, ret, dones
 
         self.params = params
-        t = time.perf_counter()
-        self.fn = jax.jit(scan).lower(self.obs, self.state, self.actions, params).compile()
-        self.first_call_s = time.perf_counter() - t
+        self.fn, self.first_call_s = _timed(
+            lambda: jax.jit(scan).lower(self.obs, self.state, self.actions, params).compile()
+        )
         jax.block_until_ready(self.fn(self.obs, self.state, self.actions, params))  # warm-up
         self.count = n * steps
 
     def run(self) -> float:
         """One call of the scan, continuing from where the previous one ended (as the vector env does)."""
-        t = time.perf_counter()
-        self.obs, self.state, _, _ = jax.block_until_ready(self.fn(self.obs, self.state, self.actions, self.params))
-        return (time.perf_counter() - t) / self.count
+        (self.obs, self.state, _, _), seconds = _timed(
+            lambda: jax.block_until_ready(self.fn(self.obs, self.state, self.actions, self.params))
+        )
+        return seconds / self.count
 
 
 class SingleLoop:
@@ -154,22 +161,21 @@ class SingleLoop:
         self.steps = args.single_steps
         self.action = np.full(self.env.action_space.shape, args.action, np.float32)
         self.env.reset(seed=args.seed)
-        t = time.perf_counter()
-        self.env.step(self.action)
-        self.first_call_s = time.perf_counter() - t
+        _, self.first_call_s = _timed(self.env.step, self.action)
         self.env.reset()  # compiles the unseeded reset's key derivation outside the timed runs
         self.env.reset(seed=args.seed)
         self.episodes = 0
 
     def run(self) -> float:
+        return _timed(self._steps)[1] / self.steps
+
+    def _steps(self) -> None:
         env, action = self.env, self.action
-        t = time.perf_counter()
         for _ in range(self.steps):
             obs, reward, terminated, truncated, info = env.step(action)
             if terminated or truncated:
                 env.reset()
                 self.episodes += 1
-        return (time.perf_counter() - t) / self.steps
 
 
 # --------------------------------------------------------------------------------------------- main

@@ -337,31 +337,13 @@ def main(argv=None) -> int:
         console.print(
             f"LQR rmse {threshold['lqr_rmse']:.4f}; threshold {args.rmse_factor} x = {threshold['threshold_rmse']:.4f}"
         )
-        ours = ours_time_to_threshold(
-            env,
-            params,
-            cfg,
-            threshold["threshold_rmse"],
-            eval_key,
-            args.eval_episodes,
-            args.max_seconds,
-            args.chunk_seconds,
-            console,
-        )
+        # Both runs: the same env, config, threshold, evaluation episodes and time limit.
+        race = (env, params, cfg, threshold["threshold_rmse"], eval_key, args.eval_episodes, args.max_seconds)
+        ours = ours_time_to_threshold(*race, args.chunk_seconds, console)
         record["time_to_threshold"] = {**threshold, "rmse_factor": args.rmse_factor, "ours": ours}
         brax = None
         if args.brax:
-            brax = brax_time_to_threshold(
-                env,
-                params,
-                cfg,
-                threshold["threshold_rmse"],
-                eval_key,
-                args.eval_episodes,
-                args.max_seconds,
-                args.brax_evals,
-                console,
-            )
+            brax = brax_time_to_threshold(*race, args.brax_evals, console)
             record["time_to_threshold"]["brax"] = brax
         goal = GOAL_CARTPOLE_S if env.system.name == "cartpole" else GOAL_QUADROTOR_2D_S
         table = Table(title=f"time to {args.rmse_factor} x LQR's RMSE ({threshold['threshold_rmse']:.4f})")

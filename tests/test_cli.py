@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from scg_cli import main
+from tests.rl_helpers import set_options
 
 
 def _run(tmp_path, name, *args):
@@ -146,16 +147,7 @@ def test_eval_and_compare_refuse_bad_input(tmp_path, capsys, args, message):
 
 
 # ----------------------------------------------------------------------------------------------- train
-_TINY_PPO = [
-    "--set",
-    "training.ppo.total_env_steps=1024",
-    "--set",
-    "training.ppo.num_envs=16",
-    "--set",
-    "training.ppo.rollout_length=16",
-    "--set",
-    "training.ppo.num_minibatches=2",
-]
+_TINY_PPO = set_options("training.ppo", total_env_steps=1024, num_envs=16, rollout_length=16, num_minibatches=2)
 
 
 def test_train_writes_a_policy_that_eval_and_compare_run(tmp_path, capsys):

@@ -8,21 +8,13 @@ import pytest
 
 import scg_algorithms.rl.training as training
 from scg_cli import main
+from tests.rl_helpers import set_options
 
 # 1-s episodes; 2 iterations of 16 copies x 16 steps (512 env steps).
 _ENV = ["--config", "configs/cartpole_stabilization.yaml", "--set", "env.episode_len_sec=1"]
-_TINY_PPO = [
-    "--set",
-    "training.ppo.total_env_steps=512",
-    "--set",
-    "training.ppo.num_envs=16",
-    "--set",
-    "training.ppo.rollout_length=16",
-    "--set",
-    "training.ppo.num_minibatches=2",
-    "--set",
-    "training.ppo.lr_decay=false",
-]
+_TINY_PPO = set_options(
+    "training.ppo", total_env_steps=512, num_envs=16, rollout_length=16, num_minibatches=2, lr_decay="false"
+)
 
 
 def _fake_run(folder, algo="ppo"):

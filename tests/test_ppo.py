@@ -10,39 +10,18 @@ import numpy as np
 import pytest
 import scipy.stats
 
-import scg_jax
 from scg_algorithms.ppo import Config, losses, make_learner, make_train
 from scg_algorithms.rl.counter import count_value
-from scg_algorithms.rl.envs import policy_action_to_input
 from scg_algorithms.rl.normalization import init_stats
-from scg_algorithms.rl.policy import load_policy
-from tests.rl_helpers import run_seeds_twice, run_training_capturing_policy
+from tests.rl_helpers import learner_fixtures, load_saved_policy, tiny_ppo, train_tiny_run
 
 # 4 iterations of 8 copies x 16 steps; one epoch of one minibatch, so the first (only) gradient step of an iteration
 # evaluates the loss at the rollout's own parameters (ratio 1: see test_rollout_log_probs_are_recomputed_exactly).
-TINY = {
-    "total_env_steps": 512,
-    "num_envs": 8,
-    "rollout_length": 16,
-    "num_epochs": 1,
-    "num_minibatches": 1,
-    "actor_hidden": [16, 16],
-    "critic_hidden": [16, 16],
-}
+TINY = tiny_ppo(total_env_steps=512, num_epochs=1, num_minibatches=1)
 NUM_SEEDS = 4
 
 
-@pytest.fixture(scope="module")
-def cartpole():
-    env = scg_jax.make("cartpole")
-    return env, env.default_params
-
-
-@pytest.fixture(scope="module")
-def seeds_run(cartpole):
-    """``make_train`` vmapped over the keys of seeds 0..3 and seed 0 again (lane 4), jitted once; run twice."""
-    env, params = cartpole
-    return run_seeds_twice(make_train, TINY, env, params, NUM_SEEDS)
+cartpole, seeds_run = learner_fixtures(make_train, TINY, NUM_SEEDS)
 
 
 # --------------------------------------------------------------------------------------------- GAE
@@ -303,12 +282,7 @@ def test_rollout_log_probs_are_recomputed_exactly(seeds_run):
 @pytest.fixture(scope="module")
 def trained_dir(cartpole, tmp_path_factory, seeds_run):
     """``run_training`` of the tiny config with seed 0's key; the policy parameters it saves are captured."""
-    env, params = cartpole
-    keys, _, _ = seeds_run
-    learner = make_learner(TINY, env)
-    out_dir = tmp_path_factory.mktemp("ppo_run")
-    policy_params, result = run_training_capturing_policy(learner, env, params, keys[0], out_dir)
-    return out_dir, learner, policy_params, result
+    return train_tiny_run(make_learner, TINY, cartpole, tmp_path_factory, seeds_run, "ppo_run")
 
 
 def test_run_training_equals_make_train(seeds_run, trained_dir):
@@ -323,20 +297,11 @@ def test_run_training_equals_make_train(seeds_run, trained_dir):
 
 
 def test_saved_policy_acts_like_the_trained_one(cartpole, trained_dir):
-    env, params = cartpole
-    out_dir, learner, policy_params, _ = trained_dir
-    controller = load_policy(out_dir, env, params)
-    assert controller.name == "ppo" and controller.info["env_steps"] == 512
-    obs = jax.random.uniform(jax.random.key(5), (64, env.observation_size), minval=-0.5, maxval=0.5)
-
-    def actions(policy_params):
-        policy = learner.make_policy(policy_params)
-        return jax.jit(jax.vmap(lambda o: policy_action_to_input(env, policy(o), params.physics)))(obs)
-
-    act = jax.jit(jax.vmap(lambda o: controller.act((), o, 0, None)[0]))
-    loaded = act(obs)
-    np.testing.assert_array_equal(loaded, actions(policy_params))
+    env, _ = cartpole
+    _, learner, policy_params, _ = trained_dir
+    _, loaded, actions = load_saved_policy(cartpole, trained_dir, "ppo", 512)
+    np.testing.assert_array_equal(loaded, actions(learner.make_policy(policy_params)))
     # Not a trivial match: the actions vary with the observation, and the saved normaliser matters.
     assert float(jnp.std(loaded)) > 1e-4
-    unnormalized = actions({**policy_params, "obs_stats": init_stats(env.observation_size)})
+    unnormalized = actions(learner.make_policy({**policy_params, "obs_stats": init_stats(env.observation_size)}))
     assert float(jnp.max(jnp.abs(unnormalized - loaded))) > 1e-5

@@ -31,6 +31,7 @@ from scg_algorithms.rl.training import TrainingInterrupted, rmse_label, run_trai
 from scg_algorithms.sac import make_learner as sac_make_learner
 from scg_algorithms.sac.replay import ReplayBuffer
 from scg_jax.rollout import auto_reset_step
+from tests.rl_helpers import tiny_ppo
 
 
 # --------------------------------------------------------------------------------------------- normalisation
@@ -227,15 +228,7 @@ def test_action_scale_widens_a_quadrotor_policy_to_twice_hover_thrust():
 
 # --------------------------------------------------------------------------------------------- resume
 # 6 iterations of 8 copies x 16 steps.
-TINY_PPO = {
-    "total_env_steps": 768,
-    "num_envs": 8,
-    "rollout_length": 16,
-    "num_epochs": 2,
-    "num_minibatches": 2,
-    "actor_hidden": [16, 16],
-    "critic_hidden": [16, 16],
-}
+TINY_PPO = tiny_ppo(total_env_steps=768, num_epochs=2, num_minibatches=2)
 ITERATIONS = 6
 
 

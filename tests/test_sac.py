@@ -9,13 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import scg_jax
 from scg_algorithms.rl.counter import count_value
-from scg_algorithms.rl.envs import policy_action_to_input
 from scg_algorithms.rl.normalization import init_stats
-from scg_algorithms.rl.policy import load_policy
 from scg_algorithms.sac import Config, losses, make_learner, make_policy_from_config, make_train, parse_config, replay
-from tests.rl_helpers import run_seeds_twice, run_training_capturing_policy
+from tests.rl_helpers import learner_fixtures, load_saved_policy, train_tiny_run
 
 # 100 iterations of 8 transitions, 2 gradient steps each after 25 warm-up iterations (200 transitions); the buffer
 # holds 400 transitions, so it wraps around twice.
@@ -32,17 +29,7 @@ NUM_SEEDS = 4
 WARMUP_ITERATIONS, NUM_ITERATIONS, GRAD_STEPS = 25, 100, 2
 
 
-@pytest.fixture(scope="module")
-def cartpole():
-    env = scg_jax.make("cartpole")
-    return env, env.default_params
-
-
-@pytest.fixture(scope="module")
-def seeds_run(cartpole):
-    """``make_train`` vmapped over the keys of seeds 0..3 and seed 0 again (lane 4), jitted once; run twice."""
-    env, params = cartpole
-    return run_seeds_twice(make_train, TINY, env, params, NUM_SEEDS)
+cartpole, seeds_run = learner_fixtures(make_train, TINY, NUM_SEEDS)
 
 
 # --------------------------------------------------------------------------------------------- losses
@@ -283,12 +270,7 @@ def test_warm_up_then_learning_and_the_buffer_wraps(seeds_run):
 @pytest.fixture(scope="module")
 def trained_dir(cartpole, tmp_path_factory, seeds_run):
     """``run_training`` of the tiny config with seed 0's key; the policy parameters it saves are captured."""
-    env, params = cartpole
-    keys, _, _ = seeds_run
-    learner = make_learner(TINY, env)
-    out_dir = tmp_path_factory.mktemp("sac_run")
-    policy_params, result = run_training_capturing_policy(learner, env, params, keys[0], out_dir)
-    return out_dir, learner, policy_params, result
+    return train_tiny_run(make_learner, TINY, cartpole, tmp_path_factory, seeds_run, "sac_run")
 
 
 def test_run_training_equals_make_train(seeds_run, trained_dir):
@@ -304,16 +286,9 @@ def test_run_training_equals_make_train(seeds_run, trained_dir):
 
 
 def test_saved_policy_acts_like_the_trained_one(cartpole, trained_dir):
-    env, params = cartpole
-    out_dir, learner, policy_params, _ = trained_dir
-    controller = load_policy(out_dir, env, params)
-    assert controller.name == "sac" and controller.info["env_steps"] == 800
-    obs = jax.random.uniform(jax.random.key(5), (64, env.observation_size), minval=-0.5, maxval=0.5)
-
-    def actions(policy):
-        return jax.jit(jax.vmap(lambda o: policy_action_to_input(env, policy(o), params.physics)))(obs)
-
-    loaded = jax.jit(jax.vmap(lambda o: controller.act((), o, 0, None)[0]))(obs)
+    env, _ = cartpole
+    _, learner, policy_params, _ = trained_dir
+    obs, loaded, actions = load_saved_policy(cartpole, trained_dir, "sac", 800)
     np.testing.assert_array_equal(loaded, actions(learner.make_policy(policy_params)))
     # make_policy_from_config rebuilds the same deterministic policy from the saved config.
     _, apply = make_policy_from_config(parse_config(TINY).to_dict(), env.observation_size, env.action_size)

@@ -22,7 +22,7 @@ import numpy as np
 
 from scg_algorithms import controller_setup as setup
 from scg_algorithms import gp
-from scg_algorithms.base import option, parse_options, positive
+from scg_algorithms.base import check_fields, option, parse_options
 from scg_algorithms.evaluation import evaluate
 from scg_algorithms.gp_mpc import data
 from scg_algorithms.gp_mpc.model import PlanUncertainty, fit_model_error, learned_model
@@ -59,14 +59,12 @@ class Options(setup.MPCOptions):
     seed: int = option(0, "seed of the data collection and the GP fit")
 
     def _check(self, path: str) -> None:
-        for name in ("horizon", "max_iter", "tol", "soft_penalty", "num_inducing", "gp_iterations", "max_fit_points",
-                     "train_episodes", "eval_episodes"):  # fmt: skip
-            positive(f"{path}.{name}", getattr(self, name))
+        positive_fields = ("horizon", "max_iter", "tol", "soft_penalty", "num_inducing", "gp_iterations",
+                           "max_fit_points", "train_episodes", "eval_episodes")  # fmt: skip
+        check_fields(self, path, positive_fields=positive_fields)
         if not 0.0 < self.prob < 1.0:
             raise ValueError(f"{path}.prob: must be in (0, 1), got {self.prob!r}")
-        for name in ("initial_std", "exploration_std", "rounds"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
+        check_fields(self, path, nonnegative=("initial_std", "exploration_std", "rounds"))
 
 
 class GPMPC(NonlinearMPC):

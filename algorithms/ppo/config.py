@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 
 from scg_algorithms.base import option
-from scg_algorithms.rl.config import check_budget, check_fields, layer_sizes
+from scg_algorithms.rl.config import action_scale_option, check_budget, check_learner_fields, layer_sizes
 from scg_algorithms.rl.networks import ACTIVATIONS
 
 
@@ -40,28 +40,20 @@ class Config:
     actor_hidden: tuple = option((64, 64), "hidden layer sizes of the policy mean network")
     critic_hidden: tuple = option((64, 64), "hidden layer sizes of the value network")
     activation: str = option("tanh", "hidden activation", choices=tuple(ACTIVATIONS))
-    action_scale: float = option(
-        1.0,
-        "factor on the policy's action in [-1, 1] before the env's normalised-action conversion "
-        "(10: a quadrotor policy spans 0-2x hover thrust)",
-    )
+    action_scale: float = action_scale_option()
 
     def _check(self, path: str) -> None:
-        check_fields(
+        check_learner_fields(
             self,
             path,
             positive_fields=(
-                "total_env_steps",
-                "num_envs",
                 "rollout_length",
                 "num_epochs",
                 "num_minibatches",
                 "learning_rate",
                 "max_grad_norm",
                 "clip_eps",
-                "reward_scale",
                 "obs_clip",
-                "action_scale",
             ),
             nonnegative=("value_clip_eps", "vf_coef", "ent_coef"),
             closed_unit=("gamma", "gae_lambda"),

@@ -11,7 +11,16 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from scg_algorithms.base import parse_options, positive
+from scg_algorithms.base import check_fields, option, parse_options
+
+__all__ = [
+    "action_scale_option",
+    "check_budget",
+    "check_fields",
+    "check_learner_fields",
+    "layer_sizes",
+    "parse_learner_config",
+]
 
 
 def parse_learner_config(cls, options, path: str):
@@ -23,25 +32,6 @@ def parse_learner_config(cls, options, path: str):
     config = parse_options(cls, options, path)
     config._check(path)  # parse_options returns an instance unchanged: check one built directly too
     return config
-
-
-def check_fields(
-    config,
-    path: str,
-    *,
-    positive_fields: Iterable[str] = (),
-    nonnegative: Iterable[str] = (),
-    closed_unit: Iterable[str] = (),
-) -> None:
-    """Check groups of ``config``'s fields: ``> 0``, ``>= 0``, in ``[0, 1]``."""
-    for name in positive_fields:
-        positive(f"{path}.{name}", getattr(config, name))
-    for name in nonnegative:
-        if getattr(config, name) < 0:
-            raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(config, name)!r}")
-    for name in closed_unit:
-        if not 0.0 <= getattr(config, name) <= 1.0:
-            raise ValueError(f"{path}.{name}: must be in [0, 1], got {getattr(config, name)!r}")
 
 
 def layer_sizes(path: str, value) -> tuple[int, ...]:
@@ -62,3 +52,20 @@ def check_budget(path: str, total_env_steps: int, per_iteration: int, what: str)
             f"{path}.total_env_steps: must be at least one batch (one iteration) of {what} = {per_iteration} "
             f"env steps, got {total_env_steps}"
         )
+
+
+def action_scale_option():
+    """The ``action_scale`` field every learner's ``Config`` declares (one default and doc for all)."""
+    return option(
+        1.0,
+        "factor on the policy's action in [-1, 1] before the env's normalised-action conversion "
+        "(10: a quadrotor policy spans 0-2x hover thrust)",
+    )
+
+
+def check_learner_fields(config, path: str, *, positive_fields: Iterable[str] = (), **groups) -> None:
+    """``check_fields`` with the fields every learner has: ``total_env_steps`` and ``num_envs`` (checked first),
+    ``reward_scale`` and ``action_scale`` (checked after ``positive_fields``) must be > 0; ``groups``:
+    ``check_fields``'s ``nonnegative`` and ``closed_unit``."""
+    learner_positive = ("total_env_steps", "num_envs", *positive_fields, "reward_scale", "action_scale")
+    check_fields(config, path, positive_fields=learner_positive, **groups)

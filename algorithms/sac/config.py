@@ -18,7 +18,13 @@ import dataclasses
 import math
 
 from scg_algorithms.base import option
-from scg_algorithms.rl.config import check_budget, check_fields, layer_sizes, parse_learner_config
+from scg_algorithms.rl.config import (
+    action_scale_option,
+    check_budget,
+    check_learner_fields,
+    layer_sizes,
+    parse_learner_config,
+)
 from scg_algorithms.rl.networks import ACTIVATIONS as _NETWORK_ACTIVATIONS
 
 # The shared networks' activations, SAC's default first.
@@ -51,19 +57,13 @@ class Config:
     reward_scale: float = option(1.0, "multiplies the reward before learning")
     normalize_observations: bool = option(True, "standardise observations with running statistics")
     max_grad_norm: float = option(0.0, "global gradient-norm clip of every optimiser (0: off)")
-    action_scale: float = option(
-        1.0,
-        "factor on the policy's action in [-1, 1] before the env's normalised-action conversion "
-        "(10: a quadrotor policy spans 0-2x hover thrust)",
-    )
+    action_scale: float = action_scale_option()
 
     def _check(self, path: str) -> None:
-        check_fields(
+        check_learner_fields(
             self,
             path,
             positive_fields=(
-                "total_env_steps",
-                "num_envs",
                 "rollout_steps",
                 "buffer_size",
                 "batch_size",
@@ -72,8 +72,6 @@ class Config:
                 "critic_lr",
                 "alpha_lr",
                 "init_alpha",
-                "reward_scale",
-                "action_scale",
             ),
             nonnegative=("warmup_steps",),
         )

@@ -109,8 +109,22 @@ class Learning(NamedTuple):
     alpha_opt: Any
 
 
-class RunnerState(NamedTuple):
-    """Everything the training loop carries (a pytree; checkpointable).
+_RunnerFields = NamedTuple(
+    "RunnerState",
+    [
+        *Learning.__annotations__.items(),
+        ("buffer", replay.ReplayBuffer),
+        ("collector", CollectorState),
+        ("key", Any),
+        ("iteration", Count),
+        ("env_steps", Count),
+        ("grad_steps", Count),
+    ],
+)
+
+
+class RunnerState(_RunnerFields):
+    """Everything the training loop carries (a pytree; checkpointable): ``Learning``'s fields, then the rest.
 
     Attributes:
         actor, critic, target_critic, log_alpha, actor_opt, critic_opt, alpha_opt: as in ``Learning``.
@@ -120,19 +134,7 @@ class RunnerState(NamedTuple):
         key: raw PRNG key. iteration, env_steps, grad_steps: ``Count``s (exact past 2^31).
     """
 
-    actor: Any
-    critic: Any
-    target_critic: Any
-    log_alpha: Any
-    actor_opt: Any
-    critic_opt: Any
-    alpha_opt: Any
-    buffer: replay.ReplayBuffer
-    collector: CollectorState
-    key: Any
-    iteration: Count
-    env_steps: Count
-    grad_steps: Count
+    __slots__ = ()
 
     @property
     def obs_stats(self) -> RunningStats:
