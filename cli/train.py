@@ -132,6 +132,26 @@ def _check_train_folder(args: argparse.Namespace) -> None:
         )
 
 
+def _write_metrics(args: argparse.Namespace, env, cfg, evaluation, **specific) -> None:
+    """``DIR/metrics.json``: the run's command, config and seed, the algorithm's own entries and the evaluation."""
+    from scg_algorithms.evaluation import evaluation_record
+    from scg_jax.config import dump_config
+
+    record = {
+        "command": "train",
+        "algo": args.algo,
+        "system": env.system.name,
+        "task": env.task,
+        "config_file": None if args.config is None else str(args.config),
+        "config": dump_config(cfg),
+        "overrides": list(args.set),
+        "seed": args.seed,
+        **{name: jsonable(value) for name, value in specific.items()},
+        "evaluation": evaluation_record(evaluation),
+    }
+    write_json(args.out / "metrics.json", record)
+
+
 def run_train(args: argparse.Namespace, console) -> int:
     check_output(args.out, "dir")  # before any work: a file in the way or an unwritable location
     if args.algo == "gp_mpc":
@@ -141,7 +161,7 @@ def run_train(args: argparse.Namespace, console) -> int:
     import jax
 
     from scg_algorithms.base import parse_options
-    from scg_algorithms.evaluation import evaluate, evaluation_record
+    from scg_algorithms.evaluation import evaluate
     from scg_algorithms.rl.policy import algorithm_module, load_policy
     from scg_algorithms.rl.training import TrainingInterrupted, run_training
     from scg_jax.config import dump_config
@@ -199,21 +219,10 @@ def run_train(args: argparse.Namespace, console) -> int:
             highlight=False,
         )
         return 130
-    record = {
-        "command": "train",
-        "algo": args.algo,
-        "system": env.system.name,
-        "task": env.task,
-        "config_file": None if args.config is None else str(args.config),
-        "config": dump_config(cfg),
-        "overrides": list(args.set),
-        "seed": args.seed,
-        "hyperparameters": jsonable(dataclasses.asdict(config)),
-        "training": jsonable(summary),
-        "evaluation": evaluation_record(evaluation),
-        "device": str(jax.devices()[0]),
-    }
-    write_json(args.out / "metrics.json", record)
+    _write_metrics(
+        args, env, cfg, evaluation, hyperparameters=dataclasses.asdict(config), training=summary,
+        device=str(jax.devices()[0]),
+    )  # fmt: skip
     title = (
         f"{env.system.name} {env.task} | {args.algo}, {summary['env_steps']:,} env steps in "
         f"{summary['total_time_s']:.1f} s | {args.eval_episodes} evaluation episodes"
@@ -230,7 +239,7 @@ def _run_train_gp_mpc(args: argparse.Namespace, console) -> int:
     import jax
 
     from scg_algorithms.base import parse_options
-    from scg_algorithms.evaluation import evaluate, evaluation_record
+    from scg_algorithms.evaluation import evaluate
     from scg_algorithms.gp_mpc.controller import PATH, Options, learn
     from scg_algorithms.gp_mpc.run import RUN_NAME, save_run, write_learning_curve
     from scg_algorithms.rl.training import existing_run_files, rmse_label
@@ -280,21 +289,10 @@ def _run_train_gp_mpc(args: argparse.Namespace, console) -> int:
     save_run(args.out, result, opts, system=env.system.name, prior_scale=args.prior_scale, extra=extra)
     write_learning_curve(args.out, result.history, rmse_label(env, params))
     evaluation = evaluate(env, params, result.controller, jax.random.key(args.seed + 1), args.eval_episodes)
-    record = {
-        "command": "train",
-        "algo": "gp_mpc",
-        "system": env.system.name,
-        "task": env.task,
-        "config_file": None if args.config is None else str(args.config),
-        "config": dump_config(cfg),
-        "overrides": list(args.set),
-        "seed": args.seed,
-        "prior_scale": args.prior_scale,
-        "options": jsonable(dataclasses.asdict(opts)),
-        "history": jsonable(result.history),
-        "evaluation": evaluation_record(evaluation),
-    }
-    write_json(args.out / "metrics.json", record)
+    _write_metrics(
+        args, env, cfg, evaluation, prior_scale=args.prior_scale, options=dataclasses.asdict(opts),
+        history=result.history,
+    )  # fmt: skip
     title = f"{env.system.name} {env.task} | gp_mpc after {opts.rounds} rounds | {args.eval_episodes} episodes"
     console.print(summary_table(title, {"gp_mpc": evaluation.summary}))
     console.print(f"wrote {args.out}/{RUN_NAME}.json, {RUN_NAME}.npz, learning_curve.csv/png, metrics.json")

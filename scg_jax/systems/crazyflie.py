@@ -82,6 +82,19 @@ class ThrustGroups:
     def input_to_action(self, u, params: Params):
         return (u / self.equilibrium_input(params) - 1.0) / self.ACTION_SCALE
 
+    def system_fields(self, name: str) -> dict:
+        """The ``System`` fields every Crazyflie model shares, wired to these thrust groups: input bounds and
+        conversions, the parameter check, and the Gymnasium id and render view named after the model."""
+        return {
+            "input_bounds": self.input_bounds,
+            "equilibrium_input": self.equilibrium_input,
+            "action_to_input": self.action_to_input,
+            "input_to_action": self.input_to_action,
+            "validate_params": lambda params: validate_params(params, name),
+            "gymnasium_id": f"scg_jax/Quadrotor{name.removeprefix('quadrotor_').upper()}-v0",
+            "view": name,
+        }
+
 
 # Bounds of the original suite: x, y in +-2 m, z in [-0.05, 2] m, velocities +-30 m/s, roll and pitch
 # +-85 deg, body rates +-500 deg/s.

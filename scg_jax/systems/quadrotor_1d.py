@@ -65,13 +65,7 @@ SYSTEM = System(
     q_diag=np.array([1.0, 0.1]),
     r_diag=np.array([0.1]),
     mse_weight=np.array([1.0, 0.0]),
-    input_bounds=_thrust.input_bounds,
-    equilibrium_input=_thrust.equilibrium_input,
-    action_to_input=_thrust.action_to_input,
-    input_to_action=_thrust.input_to_action,
-    gymnasium_id="scg_jax/Quadrotor1D-v0",
-    view="quadrotor_1d",
-    validate_params=lambda params: cf.validate_params(params, "quadrotor_1d"),
+    **_thrust.system_fields("quadrotor_1d"),
     inertial_fields=("mass",),
     wrench_allocation=WrenchAllocation(
         vertical_acceleration=1, angular_accelerations=(), inertia_fields=(), torque_axes=()

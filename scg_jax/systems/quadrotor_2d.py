@@ -80,13 +80,7 @@ SYSTEM = System(
     q_diag=np.array([1.0, 0.1, 1.0, 0.1, 0.1, 0.1]),
     r_diag=np.array([0.1, 0.1]),
     mse_weight=np.array([1.0, 0.0, 1.0, 0.0, 0.0, 0.0]),
-    input_bounds=_thrust.input_bounds,
-    equilibrium_input=_thrust.equilibrium_input,
-    action_to_input=_thrust.action_to_input,
-    input_to_action=_thrust.input_to_action,
-    gymnasium_id="scg_jax/Quadrotor2D-v0",
-    view="quadrotor_2d",
-    validate_params=lambda params: cf.validate_params(params, "quadrotor_2d"),
+    **_thrust.system_fields("quadrotor_2d"),
     inertial_fields=("mass", "iyy"),
     # z_dd is x_dot[3], theta_dd (pitch) x_dot[5].
     wrench_allocation=WrenchAllocation(

@@ -126,13 +126,7 @@ SYSTEM = System(
     q_diag=np.array([1.0, 0.1, 1.0, 0.1, 1.0, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1]),
     r_diag=np.full(4, 0.1),
     mse_weight=np.array([1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]),
-    input_bounds=_thrust.input_bounds,
-    equilibrium_input=_thrust.equilibrium_input,
-    action_to_input=_thrust.action_to_input,
-    input_to_action=_thrust.input_to_action,
-    gymnasium_id="scg_jax/Quadrotor3D-v0",
-    view="quadrotor_3d",
-    validate_params=lambda params: cf.validate_params(params, "quadrotor_3d"),
+    **_thrust.system_fields("quadrotor_3d"),
     inertial_fields=("mass", "ixx", "iyy", "izz"),
     # z_dd is x_dot[5]; the body angular accelerations p_dot, q_dot, r_dot are x_dot[9:12].
     wrench_allocation=WrenchAllocation(
