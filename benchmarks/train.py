@@ -34,7 +34,12 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from machine import load_average, print_machine, run_record  # benchmarks/machine.py, beside this script
+from machine import (  # benchmarks/machine.py, beside this script
+    load_average,
+    print_machine,
+    run_record,
+    write_markdown_table,
+)
 from rich.console import Console
 from rich.table import Table
 
@@ -295,6 +300,12 @@ def main(argv=None) -> int:
     parser.add_argument("--chunk-seconds", type=float, default=3.0, help="training time between evaluations")
     parser.add_argument("--brax-evals", type=int, default=20, help="evaluation points of the brax run")
     parser.add_argument("--json", type=Path, default=Path("benchmarks/results/train.json"), help="results file")
+    parser.add_argument(
+        "--markdown",
+        type=Path,
+        default=Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "train.md",
+        help="generated table (every run; pass another path to keep the committed page)",
+    )
     args = parser.parse_args(argv)
     console = Console()
 
@@ -364,6 +375,25 @@ def main(argv=None) -> int:
     args.json.parent.mkdir(parents=True, exist_ok=True)
     write_json(args.json, record)
     console.print(f"wrote {args.json}")
+    threshold = record.get("time_to_threshold", {})
+    notes = [f"Config {args.config}; the raw env (make_rollout, constant action) is the baseline in the same run."]
+    for name in ("ours", "brax"):
+        result = threshold.get(name)
+        if result:
+            notes.append(
+                f"- time to {args.rmse_factor}x LQR's RMSE, {name}: {result['time_s']:.1f} s, "
+                f"{result['env_steps']:,} env steps ({'reached' if result['reached'] else 'not reached'})"
+            )
+    if "brax_over_ours" in threshold:
+        notes.append(f"- brax / ours: {threshold['brax_over_ours']:.2f}")
+    write_markdown_table(
+        args.markdown, "Training speed", record,
+        ["learner", "copies", "train steps/s", "raw env steps/s", "train / env", "compile (s)"],
+        [[r["algo"], r["batch"], r["train_steps_per_s"], r["env_steps_per_s"], r["train_over_env"], r["compile_s"]]
+         for r in record.get("throughput", [])],
+        notes="\n".join(notes),
+    )  # fmt: skip
+    console.print(f"wrote {args.markdown}")
     return 0
 
 
