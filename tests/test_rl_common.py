@@ -3,7 +3,6 @@ env's episode bookkeeping, the collector, exact step counters, and ``run_trainin
 = N/2, then N/2 resumed), interrupt, extension, refusals and learning-curve conventions."""
 
 import csv
-import inspect
 import json
 
 import jax
@@ -30,7 +29,6 @@ from scg_algorithms.rl.policy import load_policy, trained_system
 from scg_algorithms.rl.training import TrainingInterrupted, rmse_label, run_training
 from scg_algorithms.sac import make_learner as sac_make_learner
 from scg_algorithms.sac.replay import ReplayBuffer
-from scg_jax.rollout import auto_reset_step
 from tests.rl_helpers import tiny_ppo
 
 
@@ -470,10 +468,6 @@ def test_collector_records_what_every_learner_needs():
     np.testing.assert_array_equal(state.episode_stats.episode_length, 2.0)
 
 
-_FORWARDS_ADVERSARY = "adversary" in inspect.signature(auto_reset_step).parameters
-
-
-@pytest.mark.skipif(not _FORWARDS_ADVERSARY, reason="needs scg_jax.rollout.auto_reset_step(..., adversary=...)")
 def test_collector_passes_the_adversary_input_to_the_env():
     """An adversary on the action channel (scale 2 N): with the protagonist's action 0 and the adversary's +1 (times
     the scale, clipped to [-1, 1]), the applied force is 2 N; it is stored with the transitions."""
