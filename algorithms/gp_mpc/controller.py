@@ -30,8 +30,6 @@ from scg_algorithms.mpc.nonlinear import NonlinearMPC
 from scg_algorithms.mpc.nonlinear import Options as NMPCOptions
 
 PATH = "controllers.gp_mpc"
-_SHARED = ("horizon", "q_diag", "r_diag", "terminal_weight", "soft_constraints", "soft_penalty", "warm_start",
-           "max_iter", "tol")  # fmt: skip
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,7 +75,10 @@ class GPMPC(NonlinearMPC):
     name = "gp_mpc"
 
     def __init__(self, env, prior_params, opts: Options, posterior: gp.GPPosterior | None):
-        nmpc = NMPCOptions(**{name: getattr(opts, name) for name in _SHARED})
+        # The MPC options both share (horizon, weights, soft constraints, IPOPT settings); the NMPC's others
+        # (discretization rk4, margins, fallbacks) keep their defaults.
+        shared = {f.name for f in dataclasses.fields(NMPCOptions)} & {f.name for f in dataclasses.fields(opts)}
+        nmpc = NMPCOptions(**{name: getattr(opts, name) for name in shared})
         prior_fd = env.symbolic_model(prior_params, discretization=nmpc.discretization).fd
         self.gp_options = opts
         self.posterior = posterior
