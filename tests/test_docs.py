@@ -9,7 +9,8 @@ checkout.
 Markers, on the first line of a block:
 - ``# not run: REASON`` — never run here (an optional extra that the test install does not have); the reason
   is required, so a skipped block always says why.
-- ``# slow`` — run only by the slow suite (a block that trains for a while).
+- ``# slow`` — run only when the slow tests are selected (a block that trains for a while); ``-m "not slow"``
+  skips it.
 """
 
 from __future__ import annotations
@@ -79,23 +80,20 @@ def _doc_id(path: Path) -> str:
     return str(path.relative_to(ROOT))
 
 
+def _slow_selected(config) -> bool:
+    """Whether this run includes the ``slow`` tests (CI does; ``-m "not slow"`` leaves them out)."""
+    return "not slow" not in (config.getoption("markexpr") or "")
+
+
 @pytest.mark.parametrize("path", DOC_FILES, ids=_doc_id)
-def test_doc_examples_run(path, tmp_path, monkeypatch):
-    """Every block not marked ``# slow`` or ``# not run`` runs without error."""
+def test_doc_examples_run(path, tmp_path, monkeypatch, request):
+    """Every block not marked ``# not run`` runs without error; ``# slow`` blocks only when slow tests are selected.
+
+    One test per file runs the whole tutorial once: a separate slow variant would run the fast blocks twice.
+    """
     monkeypatch.setattr(sys, "argv", ["doc-example"])
     os.environ.setdefault("MPLBACKEND", "Agg")
-    _run_file(path, tmp_path, monkeypatch, slow=False)
-
-
-SLOW_FILES = [p for p in DOC_FILES if any(_marker(code) == "slow" for _, code, _ in code_blocks(p))]
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("path", SLOW_FILES, ids=_doc_id)
-def test_doc_examples_run_with_slow_blocks(path, tmp_path, monkeypatch):
-    """The files with ``# slow`` blocks, run whole."""
-    os.environ.setdefault("MPLBACKEND", "Agg")
-    assert _run_file(path, tmp_path, monkeypatch, slow=True) > 0
+    _run_file(path, tmp_path, monkeypatch, slow=_slow_selected(request.config))
 
 
 def test_every_doc_has_examples_and_markers_have_reasons():
