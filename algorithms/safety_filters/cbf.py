@@ -23,8 +23,8 @@ parity reference). Where ``u_L`` already satisfies every constraint it is return
 Barriers shipped (``barrier`` option): ``ellipsoid`` (the original's cart-pole candidate
 ``h = 1 - sum_i (x_i / x_i,max)^2``, a CBF *candidate*: ``is_valid_cbf`` finds states in its safe set where no
 input satisfies the condition), ``ceiling`` (1D quadrotor altitude ceiling, braking distance
-``h = z_max - z - z_dot max(z_dot, 0) / (2 a_b)``) and ``cartpole_position`` (two braking-distance barriers on the
-cart position, ``|x| <= x_max``).
+``h = z_max - z - v^2 / (2 a_b)`` with ``v`` a smooth ``max(z_dot, 0)``) and ``cartpole_position`` (two braking-distance barriers on the
+cart position, ``|x| <= x_max``; both use a smooth approach speed, see ``approach_speed``).
 """
 
 from __future__ import annotations
@@ -75,9 +75,10 @@ class Options:
     braking_deceleration: tuple | None = option(
         None, "a_b of the braking barriers, m/s^2; default 0.9 (g - T_min/m) (ceiling), 0.5 F_max/(m_c+m_p) (cart)"
     )
+    velocity_smoothing: float = option(0.5, "epsilon of the braking barriers' smooth approach speed, m/s")
 
     def _check(self, path: str) -> None:
-        for name in ("slope", "slack_weight"):
+        for name in ("slope", "slack_weight", "velocity_smoothing"):
             if not getattr(self, name) > 0:
                 raise FieldError(f"{path}.{name}", f"must be > 0, got {getattr(self, name)!r}")
         if not self.slack_tolerance >= 0:
@@ -95,20 +96,32 @@ def ellipsoid_barrier(x, params, xp=jax_backend):
     return 1.0 - sum((x[i] * inv[i]) ** 2 for i in range(len(inv)))
 
 
+def approach_speed(v, smoothing, xp=jax_backend):
+    """A smooth ``max(v, 0)``: ``(v + sqrt(v^2 + smoothing^2)) / 2`` (m/s), >= ``max(v, 0)`` and strictly increasing,
+    so a braking barrier built on it keeps input authority (``Lg h != 0``) when the plant moves away from the limit
+    too; with the exact ``max`` the QP cannot act at ``v <= 0`` and the sampled loop creeps over the limit."""
+    return 0.5 * (v + xp.sqrt(v * v + smoothing * smoothing))
+
+
 def ceiling_barrier(x, params, xp=jax_backend):
-    """1D quadrotor ceiling: ``h = z_max - z - z_dot max(z_dot, 0) / (2 a_b)`` (m): the height left after braking
-    at ``a_b`` (m/s^2) from the current climb rate. Valid when the thrust can decelerate by ``a_b``."""
-    return params["position_max"] - x[0] - x[1] * xp.maximum(x[1], 0.0) / (2.0 * params["deceleration"])
+    """1D quadrotor ceiling: ``h = z_max - z - v^2 / (2 a_b)``, ``v = approach_speed(z_dot)`` (m): the height left
+    after braking at ``a_b`` (m/s^2). A valid CBF when the thrust can decelerate by ``a_b``: full braking gives
+    ``h_dot = -z_dot + v v' a / a_b >= 0`` for any ``a >= a_b`` (since ``v v' >= z_dot``)."""
+    v = approach_speed(x[1], params["smoothing"], xp)
+    return params["position_max"] - x[0] - v * v / (2.0 * params["deceleration"])
 
 
 def cart_upper_barrier(x, params, xp=jax_backend):
-    """Cart position below ``x_max`` after braking at ``a_b``: ``x_max - x - x_dot max(x_dot, 0) / (2 a_b)`` (m)."""
-    return params["position_max"] - x[0] - x[1] * xp.maximum(x[1], 0.0) / (2.0 * params["deceleration"])
+    """Cart position below ``x_max`` after braking at ``a_b``: ``x_max - x - v^2 / (2 a_b)``, ``v`` the smooth
+    approach speed ``approach_speed(x_dot)`` (m)."""
+    v = approach_speed(x[1], params["smoothing"], xp)
+    return params["position_max"] - x[0] - v * v / (2.0 * params["deceleration"])
 
 
 def cart_lower_barrier(x, params, xp=jax_backend):
-    """Cart position above ``-x_max`` after braking: ``x_max + x - (-x_dot) max(-x_dot, 0) / (2 a_b)`` (m)."""
-    return params["position_max"] + x[0] + x[1] * xp.maximum(-x[1], 0.0) / (2.0 * params["deceleration"])
+    """Cart position above ``-x_max`` after braking: ``x_max + x - v^2 / (2 a_b)``, ``v = approach_speed(-x_dot)``."""
+    v = approach_speed(-x[1], params["smoothing"], xp)
+    return params["position_max"] + x[0] - v * v / (2.0 * params["deceleration"])
 
 
 class Terms(NamedTuple):
@@ -550,7 +563,11 @@ def barrier_setup(env, prior_params, opts: Options, path: str = PATH):
         deceleration = 0.5 * float(physics.force_max) / (float(physics.cart_mass) + float(physics.pole_mass))
     if not deceleration > 0:
         raise FieldError(f"{path}.braking_deceleration", f"must be > 0, got {deceleration!r}")
-    params = {"position_max": np.float64(position_max), "deceleration": np.float64(deceleration)}
+    params = {
+        "position_max": np.float64(position_max),
+        "deceleration": np.float64(deceleration),
+        "smoothing": np.float64(opts.velocity_smoothing),
+    }
     functions = (ceiling_barrier,) if barrier == "ceiling" else (cart_upper_barrier, cart_lower_barrier)
     return barrier, functions, params
 
