@@ -22,8 +22,9 @@ def random_input(env, params, name: str = "random_input") -> JaxController:
 
     def act_fn(key, obs, step, reference):
         key, sample = jax.random.split(key)
-        lo, hi = jnp.asarray(low, obs.dtype), jnp.asarray(high, obs.dtype)
-        return jax.random.uniform(sample, lo.shape, obs.dtype, lo, hi), key
+        dtype = jnp.asarray(obs).dtype  # float32 unless x64 is on, also for numpy observations (host loops)
+        lo, hi = jnp.asarray(low).astype(dtype), jnp.asarray(high).astype(dtype)
+        return jax.random.uniform(sample, lo.shape, dtype, lo, hi), key
 
     return JaxController(name=name, reset_fn=reset_fn, act_fn=act_fn, info={"u_low": low, "u_high": high})
 
