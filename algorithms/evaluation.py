@@ -72,8 +72,8 @@ class Evaluation(NamedTuple):
             (T, N, obs), ``u_cmd`` and ``u`` (T, N, nu) commanded and applied inputs (N), ``reward``, ``cost``,
             ``terminated``, ``truncated``, ``mse``, ``out_of_bounds``, ``nonfinite`` (T, N) and
             ``constraint_values`` (T, N, rows); a filtered controller adds ``filter_correction`` (T, N, nu),
-            ``filter_feasible`` and ``filter_slack`` (T, N). Rows after a copy's episode ended are the plant running on (JAX
-            controllers) or repeat the last input (host controllers); the metrics ignore them.
+            ``filter_feasible`` and ``filter_slack`` (T, N). Rows after a copy's episode ended are the plant
+            running on (JAX controllers) or repeat the last input (host controllers); the metrics ignore them.
         timing: ``run_s`` (wall time of the closed loop, compile excluded for JAX controllers), ``compile_s``.
     """
 

@@ -53,7 +53,9 @@ def cartpole_env():
     import scg_jax
 
     box = [2.0, 2.0, 0.2, 2.0]
-    return scg_jax.make("cartpole", constraints=[{"type": "bounded", "on": "state", "low": [-b for b in box], "high": box}])
+    return scg_jax.make(
+        "cartpole", constraints=[{"type": "bounded", "on": "state", "low": [-b for b in box], "high": box}]
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -138,9 +140,8 @@ def parity(num_points: int) -> dict:
         jax_filter = make_filter("cbf", env, params, {"barrier": barrier})
         ref = make_filter("cbf", env, params, {"barrier": barrier, "solver": "casadi"})
         xs, us = _samples(env, num_points, seed=1)
-        u, _, info = jax.jit(jax.vmap(lambda x, v: jax_filter.certify(x, v, jax_filter.params, ())))(
-            jnp.asarray(xs), jnp.asarray(us)
-        )
+        certify = jax.jit(jax.vmap(lambda x, v, f=jax_filter: f.certify(x, v, f.params, ())))
+        u, _, info = certify(jnp.asarray(xs), jnp.asarray(us))
         u_ref = np.array([ref.certify(xs[i], us[i], ref.params, ())[0] for i in range(num_points)])
         out[barrier] = {
             "solver": jax_filter.info["solver"],
@@ -307,7 +308,8 @@ def main(argv=None) -> int:
         for r in speed
     ]
     acc_lines = [
-        "| case | violating steps | episodes with a violation | max overshoot (m) | interventions | mean correction (N) |",
+        "| case | violating steps | episodes with a violation | max overshoot (m) | interventions "
+        "| mean correction (N) |",
         "|---|---|---|---|---|---|",
     ]
     for label, r in acceptance["rows"].items():
@@ -321,7 +323,8 @@ def main(argv=None) -> int:
         for k, v in parity_result.items()
     )
     val = "; ".join(
-        f"{k}: {v['infeasible']} of {v['inside']} sampled safe states infeasible ({100 * v['infeasible_fraction']:.1f} %)"
+        f"{k}: {v['infeasible']} of {v['inside']} sampled safe states infeasible "
+        f"({100 * v['infeasible_fraction']:.1f} %)"
         for k, v in validity_result.items()
     )
     notes = (

@@ -223,7 +223,9 @@ def run_eval(args: argparse.Namespace, console) -> int:
         raise UsageError(f"argument --out: expected a .json file name, got {str(args.out)!r}")
     check_output(args.out, "file")
     env, params, cfg = make_env(args)
-    controller = _with_filter(_build_controller(args.controller, env, params, cfg, args.prior_scale), env, params, cfg, args)
+    controller = _with_filter(
+        _build_controller(args.controller, env, params, cfg, args.prior_scale), env, params, cfg, args
+    )
     evaluation = _evaluate(controller, env, params, args, console)
     npz_path, png_path = args.out.with_suffix(".npz"), args.out.with_suffix(".png")
     data = {
@@ -259,7 +261,10 @@ def run_compare(args: argparse.Namespace, console) -> int:
     if args.out is not None:
         check_output(args.out, "file")
     controllers = [_build_controller(spec, env, params, cfg, args.prior_scale) for spec in specs]
-    labels = [c.name if spec == c.name else f"{c.name} ({Path(spec).name})" for spec, c in zip(specs, controllers)]
+    labels = [
+        c.name if spec == c.name else f"{c.name} ({Path(spec).name})"
+        for spec, c in zip(specs, controllers, strict=True)
+    ]
     if args.filter is not None:
         suffix = f"+{Path(args.filter).name if Path(args.filter).is_dir() else args.filter}"
         labels = [label + suffix for label in labels]

@@ -347,7 +347,9 @@ def _run_train_learned_cbf(args: argparse.Namespace, console) -> int:
     try:
         result = train_learned_cbf(env, params, prior, opts, progress=report)
     except KeyboardInterrupt:
-        console.print("interrupted; nothing saved (a learned_cbf run is written when its episodes finish)", markup=False)
+        console.print(
+            "interrupted; nothing saved (a learned_cbf run is written when its episodes finish)", markup=False
+        )
         return 130
     except ValueError as error:
         raise UsageError(str(error)) from None
@@ -361,5 +363,7 @@ def _run_train_learned_cbf(args: argparse.Namespace, console) -> int:
     )  # fmt: skip
     title = f"{env.system.name} {env.task} | random inputs + learned_cbf | {args.eval_episodes} episodes"
     console.print(summary_table(title, {"random_input+learned_cbf": evaluation.summary}))
-    console.print(f"wrote {args.out}/{RUN_NAME}.json, {RUN_NAME}.msgpack, progress.csv, learning_curve.png, metrics.json")
+    console.print(
+        f"wrote {args.out}/{RUN_NAME}.json, {RUN_NAME}.msgpack, progress.csv, learning_curve.png, metrics.json"
+    )
     return 0

@@ -12,10 +12,10 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from scg_algorithms.safety_filters.base import (
-    FilterInfo,
-    FilterStats,
     FilteredController,
     FilteredState,
+    FilterInfo,
+    FilterStats,
     HostFilter,
     JaxFilter,
     SafetyFilter,

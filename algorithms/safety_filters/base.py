@@ -213,16 +213,12 @@ class FilteredController:
             )
         ctrl_key, filter_key = jax.random.split(key)
         info, stats = _initial_info_and_stats(self.nu, np)
-        return FilteredState(
-            self.controller.reset(ctrl_key, reference), self._filter_reset(filter_key), info, stats
-        )
+        return FilteredState(self.controller.reset(ctrl_key, reference), self._filter_reset(filter_key), info, stats)
 
     def act(self, ctrl_state: FilteredState, obs, step, reference: Reference):
         u_unc, controller_state = self.controller.act(ctrl_state.controller, obs, step, reference)
         if self.is_jax:
-            u, filter_state, info = self.safety_filter.certify(
-                obs, u_unc, self.safety_filter.params, ctrl_state.filter
-            )
+            u, filter_state, info = self.safety_filter.certify(obs, u_unc, self.safety_filter.params, ctrl_state.filter)
             stats = _update_stats(ctrl_state.stats, info, jnp)
             return u, FilteredState(controller_state, filter_state, info, stats)
         u, filter_state, info = self._filter_certify(obs, u_unc, ctrl_state.filter)
@@ -232,7 +228,9 @@ class FilteredController:
             correction=np.asarray(info.correction, dtype=np.float64).reshape(self.nu),
         )
         stats = _update_stats(ctrl_state.stats, info, np)
-        return np.asarray(u, dtype=np.float64).reshape(self.nu), FilteredState(controller_state, filter_state, info, stats)
+        return np.asarray(u, dtype=np.float64).reshape(self.nu), FilteredState(
+            controller_state, filter_state, info, stats
+        )
 
     # A JAX filter behind a host controller runs jitted on one copy; a host filter is called as is.
     def _filter_reset(self, key):

@@ -23,8 +23,9 @@ parity reference). Where ``u_L`` already satisfies every constraint it is return
 Barriers shipped (``barrier`` option): ``ellipsoid`` (the original's cart-pole candidate
 ``h = 1 - sum_i (x_i / x_i,max)^2``, a CBF *candidate*: ``is_valid_cbf`` finds states in its safe set where no
 input satisfies the condition), ``ceiling`` (1D quadrotor altitude ceiling, braking distance
-``h = z_max - z - v^2 / (2 a_b)`` with ``v`` a smooth ``max(z_dot, 0)``) and ``cartpole_position`` (two braking-distance barriers on the
-cart position, ``|x| <= x_max``; both use a smooth approach speed, see ``approach_speed``).
+``h = z_max - z - v^2 / (2 a_b)`` with ``v`` a smooth ``max(z_dot, 0)``) and ``cartpole_position`` (two
+braking-distance barriers on the cart position, ``|x| <= x_max``; both braking barriers use a smooth approach
+speed, see ``approach_speed``).
 """
 
 from __future__ import annotations

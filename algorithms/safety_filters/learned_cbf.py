@@ -92,7 +92,9 @@ def make_learned_cbf(env, prior_params, options=None, net_params=None):
     ``learned_cbf`` whose ``params["correction"]`` holds the network parameters (traced)."""
     opts = parse_options(Options, options, PATH)
     if opts.solver == "casadi":
-        raise FieldError(f"{PATH}.solver", "the learned correction is JAX only; allowed values are auto, closed_form, qpax")
+        raise FieldError(
+            f"{PATH}.solver", "the learned correction is JAX only; allowed values are auto, closed_form, qpax"
+        )
     _, functions, _ = cbf_lib.barrier_setup(env, prior_params, _cbf_options(opts), PATH)
     m, nu = len(functions), env.nu
     network = _network(opts, m, nu)
@@ -263,7 +265,9 @@ def train_learned_cbf(env, params, prior_params, options=None, progress=None) ->
     for episode in range(opts.num_episodes):
         weight = episode / (opts.num_episodes - 1) if opts.num_episodes > 1 else 1.0
         key, data_key, train_key = jax.random.split(key, 3)
-        x, u, valid, residual = collect(net_params, jnp.asarray(weight, dtype), jax.random.split(data_key, opts.num_copies))
+        x, u, valid, residual = collect(
+            net_params, jnp.asarray(weight, dtype), jax.random.split(data_key, opts.num_copies)
+        )
         keep = np.asarray(valid).reshape(-1)
         x = np.asarray(x).reshape(-1, nx)[keep]
         u = np.asarray(u).reshape(-1, nu)[keep]
@@ -360,18 +364,20 @@ def load_learned_cbf(directory, env, params, options=None):
 
     directory = Path(directory)
     if not is_run(directory):
-        raise ValueError(f"{directory}: no {RUN_NAME}.json and {RUN_NAME}.msgpack (write one with scg-jax train --algo learned_cbf)")
+        raise ValueError(
+            f"{directory}: no {RUN_NAME}.json and {RUN_NAME}.msgpack (write one with scg-jax train --algo learned_cbf)"
+        )
     record = json.loads((directory / f"{RUN_NAME}.json").read_text())
     if record.get("system") != env.system.name:
-        raise ValueError(
-            f"{directory}: a learned CBF for the {record.get('system')} system, not for {env.system.name}"
-        )
+        raise ValueError(f"{directory}: a learned CBF for the {record.get('system')} system, not for {env.system.name}")
     saved = {k: (tuple(v) if isinstance(v, list) else v) for k, v in record["options"].items()}
     merged = {**saved, **dict(options or {})}
     scale = float(record["prior_scale"])
     prior = params if scale == 1.0 else make_prior(env, params, scale)
     untrained = make_learned_cbf(env, prior, merged)
-    net_params = serialization.from_bytes(untrained.params["correction"], (directory / f"{RUN_NAME}.msgpack").read_bytes())
+    net_params = serialization.from_bytes(
+        untrained.params["correction"], (directory / f"{RUN_NAME}.msgpack").read_bytes()
+    )
     return untrained.replace(params={**untrained.params, "correction": net_params})
 
 
