@@ -28,7 +28,8 @@ def _positive_seconds(text: str) -> float:
 def add_train_parser(subparsers) -> argparse.ArgumentParser:
     parser = subparsers.add_parser(
         "train",
-        help="train PPO or SAC on parallel copies of a config's env; save the policy, learning curve and metrics",
+        help="train PPO or SAC on parallel copies of a config's env (or GP-MPC, or a learned CBF safety filter); save "
+        "the result, learning curve and metrics",
         description=(
             "Train a JAX learner with the hyperparameters of the config's training.ALGO section (defaults where "
             "absent) on the env of the config, with its randomisation and disturbances. Shows progress (a bar on a "
