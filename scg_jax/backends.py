@@ -6,8 +6,7 @@ arrays and a CasADi ``SX`` column of shape ``(n, 1)`` when given CasADi symbols.
 array into the backend's constant type and ``xp.repeat(n, body, x)`` applies ``body`` n times (a
 ``lax.fori_loop`` under JAX, so the compiled graph does not grow with the number of physics substeps).
 ``xp.exp`` and ``xp.dot`` (inner product of two vectors) serve the Gaussian-process posterior, which is written
-once and evaluated on both backends like the dynamics. ``xp.maximum`` (elementwise) serves the safety filters'
-barrier functions (a braking distance counts only the velocity towards the limit).
+once and evaluated on both backends like the dynamics.
 """
 
 from __future__ import annotations
@@ -38,7 +37,6 @@ jax_backend = SimpleNamespace(
     sqrt=jnp.sqrt,
     exp=jnp.exp,
     dot=jnp.dot,
-    maximum=jnp.maximum,
     stack=jnp.stack,
     concatenate=jnp.concatenate,
     matmul=jnp.matmul,
@@ -55,7 +53,6 @@ casadi_backend = SimpleNamespace(
     sqrt=cs.sqrt,
     exp=cs.exp,
     dot=cs.dot,
-    maximum=cs.fmax,
     stack=lambda items: cs.vertcat(*items),
     concatenate=lambda items: cs.vertcat(*items),
     matmul=cs.mtimes,
