@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from scg_algorithms.base import Reference
+from scg_algorithms.safety_filters.base import check_system, filter_record, intervention_metrics, is_filtered
 from scg_jax import metrics as metrics_lib
 
 # The keys of the JSON the CLI writes, in the paper's order: summary name -> metrics.summarize name.
@@ -62,13 +63,17 @@ class Evaluation(NamedTuple):
             ``failure_rate`` (episodes with any constraint violation or a crash), ``constraint_violation_steps``
             (mean steps in violation per episode) and its ``_std``, ``return``, ``return_std``, ``length``,
             ``length_std`` (control steps), ``crash_rate``, ``compute_time_per_step_s``,
-            ``compute_time_per_batch_step_s`` (JAX controllers; ``None`` for host ones), ``num_episodes``.
+            ``compute_time_per_batch_step_s`` (JAX controllers; ``None`` for host ones), ``num_episodes``; for a
+            safety-filtered controller (``scg_algorithms.safety_filters.filtered``) also ``intervention_fraction``
+            (steps where the filter changed the input by more than 1e-9 N / steps), ``mean_correction`` (mean
+            ``|u - u_uncertified|`` over steps, N) and ``infeasible_fraction`` (steps whose filter problem failed).
         per_episode: ``scg_jax.metrics.episode_metrics`` of each episode, (num_episodes,) arrays.
         trajectory: ``x`` (T + 1, N, nx) states from reset to the last step, ``x_ref`` (T + 1, N, nx), ``obs``
             (T, N, obs), ``u_cmd`` and ``u`` (T, N, nu) commanded and applied inputs (N), ``reward``, ``cost``,
             ``terminated``, ``truncated``, ``mse``, ``out_of_bounds``, ``nonfinite`` (T, N) and
-            ``constraint_values`` (T, N, rows). Rows after a copy's episode ended are the plant running on (JAX
-            controllers) or repeat the last input (host controllers); the metrics ignore them.
+            ``constraint_values`` (T, N, rows); a filtered controller adds ``filter_correction`` (T, N, nu),
+            ``filter_feasible`` and ``filter_slack`` (T, N). Rows after a copy's episode ended are the plant
+            running on (JAX controllers) or repeat the last input (host controllers); the metrics ignore them.
         timing: ``run_s`` (wall time of the closed loop, compile excluded for JAX controllers), ``compile_s``.
     """
 
@@ -120,6 +125,8 @@ def _closed_loop_fn(env, controller):
                 "truncated": out.truncated,
                 **{name: out.info[name] for name in _INFO_KEYS},
             }
+            if is_filtered(controller):  # a safety filter's report of this step, for the intervention metrics
+                record.update(filter_record(ctrl_state))
             return (out.obs, out.state, ctrl_state), record
 
         (_, final_state, _), records = jax.lax.scan(body, (obs, state, ctrl_state), None, length=env.num_steps)
@@ -242,6 +249,9 @@ def _evaluate_host(env, params, controller, key, num_episodes, batched_params, p
     num_steps = env.num_steps
     records: dict[str, list] = {name: [] for name in ("obs", "x", "reward", "cost", "terminated", "truncated")}
     records.update({name: [] for name in _INFO_KEYS})
+    with_filter = is_filtered(controller)
+    if with_filter:
+        filter_last = [filter_record(state_i) for state_i in ctrl_states]
     done = np.zeros(num_episodes, dtype=bool)
     u_last = np.zeros((num_episodes, env.nu))
     act_times: list[float] = []
@@ -269,6 +279,11 @@ def _evaluate_host(env, params, controller, key, num_episodes, batched_params, p
                 if not np.all(np.isfinite(u_i)):
                     raise FloatingPointError(f"controller {controller.name!r} returned a non-finite input {u_i}")
                 u_last[i] = u_i
+                if with_filter:
+                    filter_last[i] = filter_record(ctrl_states[i])
+            if with_filter:
+                for name in filter_last[0]:
+                    records.setdefault(name, []).append(np.stack([np.asarray(f[name]) for f in filter_last]))
             obs_next, state, reward, cost, terminated, truncated, info = step(state, jnp.asarray(u_last), params)
             for name, value in (
                 ("obs", obs_np),
@@ -330,6 +345,8 @@ def evaluate(
         ``Evaluation`` (see its docstring for the definitions).
     """
     num_episodes = _check(env, params, controller, num_episodes)
+    if is_filtered(controller):
+        check_system(controller.safety_filter, env)
     if controller.is_jax:
         trajectory, timing, per_step, per_batch_step = _evaluate_jax(
             env, params, controller, key, num_episodes, batched_params, measure_time
@@ -356,6 +373,10 @@ def _score(name, trajectory, timing, per_step, per_batch_step, num_episodes) -> 
     summary["compute_time_per_step_s"] = per_step
     summary["compute_time_per_batch_step_s"] = per_batch_step
     summary["num_episodes"] = num_episodes
+    if "filter_correction" in trajectory:  # a filtered controller: how often and how much the filter intervened
+        summary.update(
+            intervention_metrics(trajectory["filter_correction"], trajectory["filter_feasible"], per_episode["length"])
+        )
     return Evaluation(name, summary, per_episode, trajectory, timing)
 
 

@@ -7,10 +7,11 @@ in ``_SUBCOMMANDS``):
   writes ``rollout.npz``, ``metrics.json`` and ``rollout.png`` to ``--out``.
 - ``eval``: one controller (a registered name or a trained policy's folder) on ``--episodes`` episodes with the
   paper's metrics; writes the JSON, the trajectories (.npz) and a plot (.png).
-- ``compare``: several controllers on the same episodes, side by side.
+- ``compare``: several controllers on the same episodes, side by side. Both ``eval`` and ``compare`` take
+  ``--filter NAME|DIR`` (a safety filter around every controller; ``scg_algorithms.safety_filters``).
 - ``train``: PPO or SAC with the config's ``training.ALGO`` hyperparameters, or GP-MPC's learning loop with its
-  ``controllers.gp_mpc`` options; writes the policy (or the GP), checkpoints, the learning curve and
-  ``metrics.json`` (training summary and an evaluation).
+  ``controllers.gp_mpc`` options, or a learned CBF (``--algo learned_cbf``); writes the policy (or the GP, or the
+  filter), checkpoints, the learning curve and ``metrics.json`` (training summary and an evaluation).
 
 Modules: ``common`` (environment options, the ``--out`` check, usage errors, tables), ``rollout``, ``evaluate``
 (eval and compare), ``train``.

@@ -168,6 +168,12 @@ _TABLE_ROWS = (
     ("length (steps)", "length", None, 1),
     ("compute time per step (ms)", "compute_time_per_step_ms", None, 4),
 )
+# Rows shown when a column comes from a safety-filtered controller.
+_FILTER_ROWS = (
+    ("filter intervention fraction", "intervention_fraction", None, 4),
+    ("filter mean correction (N)", "mean_correction", None, 4),
+    ("filter infeasible fraction", "infeasible_fraction", None, 4),
+)
 
 
 def summary_table(title: str, summaries: dict[str, dict]):
@@ -177,10 +183,14 @@ def summary_table(title: str, summaries: dict[str, dict]):
     table.add_column("metric")
     for name in summaries:
         table.add_column(name, justify="right")
-    for label, key, spread, digits in _TABLE_ROWS:
+    rows = _TABLE_ROWS
+    if any("intervention_fraction" in summary for summary in summaries.values()):
+        rows = rows + _FILTER_ROWS
+    for label, key, spread, digits in rows:
         cells = []
         for summary in summaries.values():
             summary = dict(summary)
+            summary.setdefault(key, None)
             per_step = summary.get("compute_time_per_step_s")
             summary["compute_time_per_step_ms"] = None if per_step is None else 1e3 * per_step
             cells.append(_format_metric(summary, key, spread, digits))

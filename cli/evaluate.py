@@ -30,6 +30,17 @@ def _add_controller_arguments(parser: argparse.ArgumentParser) -> None:
         default=1.0,
         help="the controller's model has every inertial parameter times this factor (default: 1, the true plant)",
     )
+    run.add_argument(
+        "--filter",
+        metavar="NAME|DIR",
+        help="certify every input with a safety filter: a registered name (cbf, learned_cbf, ...; options from the "
+        "config's safety_filters.NAME section) or the folder of a learned CBF written by scg-jax train",
+    )
+    run.add_argument(
+        "--filter-prior-scale",
+        type=float,
+        help="the filter's model has every inertial parameter times this factor (default: --prior-scale)",
+    )
     run.add_argument("--episodes", type=positive_int, default=16, help="episodes, run in parallel (default: 16)")
     run.add_argument("--seed", type=int, default=0, help="PRNG seed (default: 0)")
 
@@ -114,6 +125,34 @@ def _build_controller(spec: str, env, params, cfg, prior_scale: float):
     )
 
 
+def _with_filter(controller, env, params, cfg, args):
+    """``controller`` certified by the ``--filter`` (unchanged without one)."""
+    if args.filter is None:
+        return controller
+    from scg_algorithms.safety_filters import FILTERS, filtered, is_filter_folder, load_filter, make_filter
+    from scg_jax.env import prior_params
+
+    scale = args.prior_scale if args.filter_prior_scale is None else args.filter_prior_scale
+    if not (np.isfinite(scale) and scale > 0):
+        raise UsageError(f"argument --filter-prior-scale: must be a positive number, got {scale!r}")
+    try:
+        if args.filter in FILTERS:
+            prior = params if scale == 1.0 else prior_params(env, params, scale)
+            safety_filter = make_filter(args.filter, env, prior, cfg.safety_filters.get(args.filter))
+        elif is_filter_folder(args.filter):
+            if args.filter_prior_scale is not None:
+                raise UsageError("argument --filter-prior-scale: a trained filter keeps the prior it learned on")
+            safety_filter = load_filter(args.filter, env, params)
+        else:
+            raise UsageError(
+                f"argument --filter: {args.filter!r} is neither a filter name ({', '.join(FILTERS)}) nor a folder "
+                "written by scg-jax train --algo learned_cbf"
+            )
+        return filtered(controller, safety_filter, env)
+    except (ValueError, OSError) as error:
+        raise UsageError(f"argument --filter: {error}") from None
+
+
 def _is_gp_mpc_run(path: Path) -> bool:
     from scg_algorithms.gp_mpc.run import is_run
 
@@ -169,6 +208,7 @@ def _evaluation_extra(env, cfg, args, controller) -> dict:
         "config": dump_config(cfg),
         "overrides": list(args.set),
         "prior_scale": args.prior_scale,
+        "filter": args.filter,
         "seed": args.seed,
         "num_steps": env.num_steps,
         "controller_info": jsonable(getattr(controller, "info", {})),
@@ -183,7 +223,9 @@ def run_eval(args: argparse.Namespace, console) -> int:
         raise UsageError(f"argument --out: expected a .json file name, got {str(args.out)!r}")
     check_output(args.out, "file")
     env, params, cfg = make_env(args)
-    controller = _build_controller(args.controller, env, params, cfg, args.prior_scale)
+    controller = _with_filter(
+        _build_controller(args.controller, env, params, cfg, args.prior_scale), env, params, cfg, args
+    )
     evaluation = _evaluate(controller, env, params, args, console)
     npz_path, png_path = args.out.with_suffix(".npz"), args.out.with_suffix(".png")
     data = {
@@ -219,9 +261,16 @@ def run_compare(args: argparse.Namespace, console) -> int:
     if args.out is not None:
         check_output(args.out, "file")
     controllers = [_build_controller(spec, env, params, cfg, args.prior_scale) for spec in specs]
+    labels = [
+        c.name if spec == c.name else f"{c.name} ({Path(spec).name})"
+        for spec, c in zip(specs, controllers, strict=True)
+    ]
+    if args.filter is not None:
+        suffix = f"+{Path(args.filter).name if Path(args.filter).is_dir() else args.filter}"
+        labels = [label + suffix for label in labels]
+        controllers = [_with_filter(c, env, params, cfg, args) for c in controllers]
     records, summaries = {}, {}
-    for spec, controller in zip(specs, controllers, strict=True):
-        label = controller.name if spec == controller.name else f"{controller.name} ({Path(spec).name})"
+    for label, controller in zip(labels, controllers, strict=True):
         evaluation = _evaluate(controller, env, params, args, console)
         summaries[label] = evaluation.summary
         records[label] = evaluation_record(evaluation, {"controller_info": jsonable(getattr(controller, "info", {}))})

@@ -12,7 +12,7 @@ import numpy as np
 from scg_cli.common import UsageError, add_env_arguments, check_output, jsonable, make_env, positive_int, summary_table
 from scg_jax.files import write_json
 
-LEARNERS = ("ppo", "sac", "gp_mpc")
+LEARNERS = ("ppo", "sac", "gp_mpc", "learned_cbf")
 
 
 def _positive_seconds(text: str) -> float:
@@ -28,7 +28,8 @@ def _positive_seconds(text: str) -> float:
 def add_train_parser(subparsers) -> argparse.ArgumentParser:
     parser = subparsers.add_parser(
         "train",
-        help="train PPO or SAC on parallel copies of a config's env; save the policy, learning curve and metrics",
+        help="train PPO or SAC on parallel copies of a config's env (or GP-MPC, or a learned CBF safety filter); save "
+        "the result, learning curve and metrics",
         description=(
             "Train a JAX learner with the hyperparameters of the config's training.ALGO section (defaults where "
             "absent) on the env of the config, with its randomisation and disturbances. Shows progress (a bar on a "
@@ -72,7 +73,7 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
         "--prior-scale",
         type=float,
         default=1.0,
-        help="gp_mpc: the prior model has every inertial parameter times this factor (default: 1)",
+        help="gp_mpc, learned_cbf: the prior model has every inertial parameter times this factor (default: 1)",
     )
     parser.set_defaults(_train_parser=parser)
     return parser
@@ -156,6 +157,8 @@ def run_train(args: argparse.Namespace, console) -> int:
     check_output(args.out, "dir")  # before any work: a file in the way or an unwritable location
     if args.algo == "gp_mpc":
         return _run_train_gp_mpc(args, console)
+    if args.algo == "learned_cbf":
+        return _run_train_learned_cbf(args, console)
     if args.prior_scale != 1.0:
         raise UsageError(f"argument --prior-scale: only gp_mpc learns on a prior model; {args.algo} has none")
     import jax
@@ -296,4 +299,72 @@ def _run_train_gp_mpc(args: argparse.Namespace, console) -> int:
     title = f"{env.system.name} {env.task} | gp_mpc after {opts.rounds} rounds | {args.eval_episodes} episodes"
     console.print(summary_table(title, {"gp_mpc": evaluation.summary}))
     console.print(f"wrote {args.out}/{RUN_NAME}.json, {RUN_NAME}.npz, learning_curve.csv/png, metrics.json")
+    return 0
+
+
+def _run_train_learned_cbf(args: argparse.Namespace, console) -> int:
+    """``train --algo learned_cbf``: the blending episodes and updates of
+    ``scg_algorithms.safety_filters.learned_cbf.train_learned_cbf`` with the config's ``safety_filters.learned_cbf``
+    options on a prior of ``--prior-scale``; writes learned_cbf.json/msgpack, progress.csv, learning_curve.png and
+    metrics.json (the filter around random inputs, evaluated like scg-jax eval)."""
+    import jax
+
+    from scg_algorithms.base import parse_options
+    from scg_algorithms.evaluation import evaluate
+    from scg_algorithms.rl.training import existing_run_files
+    from scg_algorithms.safety_filters import filtered
+    from scg_algorithms.safety_filters.learned_cbf import PATH, RUN_NAME, Options, save_run, train_learned_cbf
+    from scg_algorithms.safety_filters.uncertified import random_input
+    from scg_jax.config import dump_config
+    from scg_jax.env import prior_params
+
+    env, params, cfg = make_env(args)
+    if not (np.isfinite(args.prior_scale) and args.prior_scale > 0):
+        raise UsageError(f"argument --prior-scale: must be a positive number, got {args.prior_scale!r}")
+    if args.resume:
+        raise UsageError("argument --resume: a learned_cbf run is not resumable; use --overwrite")
+    try:
+        opts = parse_options(Options, {**dict(cfg.safety_filters.get("learned_cbf") or {}), "seed": args.seed}, PATH)
+        prior = params if args.prior_scale == 1.0 else prior_params(env, params, args.prior_scale)
+    except ValueError as error:
+        raise UsageError(str(error)) from None
+    others = existing_run_files(args.out)
+    mine = [name for name in (f"{RUN_NAME}.json", f"{RUN_NAME}.msgpack") if (args.out / name).exists()]
+    if (others or mine) and not args.overwrite:
+        raise UsageError(f"argument --out: {args.out} already holds a run; pass --overwrite to replace it")
+    console.print(
+        f"learned_cbf on the {env.system.name}, prior scale {args.prior_scale:g}: {opts.num_episodes} blending "
+        f"episodes of {opts.num_copies} copies x {env.num_steps} steps",
+        highlight=False,
+    )
+
+    def report(row):
+        console.print(
+            f"episode {row['episode']}: {row['data_seconds']:.0f} s of data, violating steps "
+            f"{100 * row['violation_fraction']:.3f} %, interventions {100 * row['intervention_fraction']:.1f} %",
+            highlight=False,
+        )
+
+    try:
+        result = train_learned_cbf(env, params, prior, opts, progress=report)
+    except KeyboardInterrupt:
+        console.print(
+            "interrupted; nothing saved (a learned_cbf run is written when its episodes finish)", markup=False
+        )
+        return 130
+    except ValueError as error:
+        raise UsageError(str(error)) from None
+    extra = {"config": dump_config(cfg), "overrides": list(args.set)}
+    save_run(args.out, result, system=env.system.name, prior_scale=args.prior_scale, extra=extra)
+    controller = filtered(random_input(env, params), result.filter, env)
+    evaluation = evaluate(env, params, controller, jax.random.key(args.seed + 1), args.eval_episodes)
+    _write_metrics(
+        args, env, cfg, evaluation, prior_scale=args.prior_scale, options=dataclasses.asdict(opts),
+        history=result.history,
+    )  # fmt: skip
+    title = f"{env.system.name} {env.task} | random inputs + learned_cbf | {args.eval_episodes} episodes"
+    console.print(summary_table(title, {"random_input+learned_cbf": evaluation.summary}))
+    console.print(
+        f"wrote {args.out}/{RUN_NAME}.json, {RUN_NAME}.msgpack, progress.csv, learning_curve.png, metrics.json"
+    )
     return 0

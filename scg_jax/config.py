@@ -511,6 +511,11 @@ class EnvConfig(_Section):
         return options
 
 
+# The safety filters a config's ``safety_filters`` section may configure (``scg_algorithms.safety_filters.FILTERS``;
+# the environment layer does not import the algorithms, so the names are listed here too).
+SAFETY_FILTER_NAMES = ("cbf", "learned_cbf", "linear_mpsc", "nonlinear_mpsc")
+
+
 def _options_mapping(value, path):
     """A mapping of option names to plain values, checked later by the controller or trainer that reads it."""
     if value is None:
@@ -529,8 +534,9 @@ class Config(_Section):
 
     ``controllers.<name>`` holds the options of the controller ``name`` (``scg_algorithms.CONTROLLERS``; checked when
     the controller is built, messages name ``controllers.<name>.<key>``), ``training.<algo>`` the hyperparameters
-    of the learner ``algo`` (``ppo``, ``sac``; checked by its ``make_train``). Both default to empty (every
-    option at its default).
+    of the learner ``algo`` (``ppo``, ``sac``; checked by its ``make_train``), ``safety_filters.<name>`` the options
+    of the safety filter ``name`` (one of ``SAFETY_FILTER_NAMES``; the options are checked when the filter is built,
+    messages name ``safety_filters.<name>.<key>``). All default to empty (every option at its default).
     """
 
     _name: ClassVar[str] = ""
@@ -540,15 +546,18 @@ class Config(_Section):
     training: dict = _field(
         _optional(_mapping_of(_options_mapping, "learner names (ppo, sac) to their hyperparameters")), None
     )
+    safety_filters: dict = _field(
+        _optional(_mapping_of(_options_mapping, "safety filter names to their options", SAFETY_FILTER_NAMES)), None
+    )
 
     def _check(self, path: str) -> None:
-        for name in ("controllers", "training"):
+        for name in ("controllers", "training", "safety_filters"):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, {})
 
     def to_dict(self) -> dict:
         result = super().to_dict()
-        for name in ("controllers", "training"):
+        for name in ("controllers", "training", "safety_filters"):
             if not result.get(name):
                 result.pop(name, None)
         return result

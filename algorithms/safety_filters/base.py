@@ -1,0 +1,335 @@
+"""The safety-filter protocol: a filter minimally changes any controller's input so the plant stays safe.
+
+A filter sees what the controller sees (the observation ``obs`` of its copy; its first ``nx`` entries are the state,
+``scg_algorithms.base.state_from_obs``) and the controller's physical input ``u_uncertified`` (N), and returns the
+certified input::
+
+    filter_state = safety_filter.reset(key)
+    u, filter_state, info = safety_filter.certify(obs, u_uncertified, filter_params, filter_state)
+
+``info`` is a ``FilterInfo``: ``feasible`` (the filter's problem was solved; ``False`` means a fallback input was
+used), ``slack`` (>= 0, the soft-constraint slack used, 0 when the hard constraints held) and ``correction``
+(``u - u_uncertified``, N). ``filter_params`` is a pytree of traced values (prior physics, barrier parameters,
+network weights) whose default is ``safety_filter.params``; passing others (a trained network) needs no
+recompilation.
+
+Two kinds, as controllers (``scg_algorithms.base``): ``is_jax = True`` filters are pure JAX functions of one copy
+(the harness ``vmap``-s and ``jit``-s them inside the closed loop); ``is_jax = False`` filters take and return numpy
+arrays of one copy on the host (CasADi / IPOPT / cvxpy).
+
+``filtered(controller, safety_filter)`` composes a controller with a filter into a controller (JAX iff both are)
+whose state is a ``FilteredState``: the controller's state, the filter's state, the last ``FilterInfo`` and running
+``FilterStats``. ``scg_algorithms.evaluation`` recognises such a controller and reports the intervention metrics.
+
+Every filter factory has the signature ``make_<name>(env, prior_params, options=None) -> SafetyFilter``, like the
+controllers'; the registry is ``scg_algorithms.safety_filters.FILTERS``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from typing import Any, ClassVar, NamedTuple, Protocol, runtime_checkable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from scg_algorithms.base import Reference
+
+# |correction| above this (N) counts as an intervention; below it is round-off.
+INTERVENTION_THRESHOLD = 1e-9
+
+
+class FilterInfo(NamedTuple):
+    """What a filter reports about one certification.
+
+    Attributes:
+        feasible: bool scalar: the filter's problem was solved (``False``: a fallback input was used).
+        slack: float scalar >= 0: the soft-constraint slack used (0 when the hard constraints held).
+        correction: (nu,) ``u - u_uncertified``, N.
+    """
+
+    feasible: Any
+    slack: Any
+    correction: Any
+
+
+@runtime_checkable
+class SafetyFilter(Protocol):
+    """What the harness needs of a safety filter (see the module docstring)."""
+
+    name: str
+    is_jax: bool
+    system: str
+    params: Any
+
+    def reset(self, key) -> Any: ...
+
+    def certify(self, x_or_obs, u_uncertified, filter_params, filter_state) -> tuple[Any, Any, FilterInfo]: ...
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class JaxFilter:
+    """A filter made of two pure JAX functions of one copy (jit- and vmap-able).
+
+    Attributes:
+        name: the filter's name (``"cbf"``, ``"learned_cbf"``, ...). system: the env system it was built for.
+        params: the default ``filter_params`` pytree (traced). reset_fn: ``reset_fn(key) -> filter_state``.
+        certify_fn: ``certify_fn(obs, u_uncertified, filter_params, filter_state) -> (u, filter_state, FilterInfo)``.
+        info: static facts for reports (barrier, solver, slope); not traced.
+    """
+
+    name: str
+    system: str
+    params: Any
+    reset_fn: Callable
+    certify_fn: Callable
+    info: Mapping = dataclasses.field(default_factory=dict)
+    is_jax: ClassVar[bool] = True
+
+    def reset(self, key):
+        return self.reset_fn(key)
+
+    def certify(self, x_or_obs, u_uncertified, filter_params, filter_state):
+        return self.certify_fn(x_or_obs, u_uncertified, filter_params, filter_state)
+
+    def replace(self, **changes) -> JaxFilter:
+        """A copy with some fields changed (e.g. ``params`` of a trained network)."""
+        return dataclasses.replace(self, **changes)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class HostFilter:
+    """A filter that runs on the host, one copy at a time, with numpy arrays (CasADi, IPOPT, cvxpy).
+
+    Attributes as ``JaxFilter``; ``certify_fn`` takes and returns numpy arrays (``FilterInfo`` of numpy scalars).
+    """
+
+    name: str
+    system: str
+    params: Any
+    reset_fn: Callable
+    certify_fn: Callable
+    info: Mapping = dataclasses.field(default_factory=dict)
+    is_jax: ClassVar[bool] = False
+
+    def reset(self, key):
+        return self.reset_fn(key)
+
+    def certify(self, x_or_obs, u_uncertified, filter_params, filter_state):
+        return self.certify_fn(x_or_obs, u_uncertified, filter_params, filter_state)
+
+
+class FilterStats(NamedTuple):
+    """Running intervention statistics of a filtered controller (counts over its ``act`` calls).
+
+    Attributes:
+        steps: number of certified inputs. interventions: steps with ``|correction| > INTERVENTION_THRESHOLD``.
+        correction_sum: sum of ``|correction|`` (Euclidean norm, N). infeasible: steps with ``feasible = False``.
+    """
+
+    steps: Any
+    interventions: Any
+    correction_sum: Any
+    infeasible: Any
+
+
+class FilteredState(NamedTuple):
+    """The state of a filtered controller: the controller's, the filter's, the last ``FilterInfo`` and the stats."""
+
+    controller: Any
+    filter: Any
+    info: FilterInfo
+    stats: FilterStats
+
+
+def _check_filter(safety_filter) -> None:
+    for name in ("name", "is_jax", "system", "params", "reset", "certify"):
+        if not hasattr(safety_filter, name):
+            raise TypeError(f"safety_filter: missing {name!r}; see scg_algorithms.safety_filters.base.SafetyFilter")
+
+
+def check_system(safety_filter, env) -> None:
+    """Raise ``ValueError`` unless ``safety_filter`` was built for ``env``'s system."""
+    if safety_filter.system != env.system.name:
+        raise ValueError(
+            f"safety filter {safety_filter.name!r}: built for the {safety_filter.system} system, not for "
+            f"{env.system.name}; build it with the env it filters (make_filter(name, env, prior_params))"
+        )
+
+
+def _initial_info_and_stats(nu: int, xnp):
+    info = FilterInfo(feasible=xnp.asarray(True), slack=xnp.asarray(0.0), correction=xnp.zeros(nu))
+    stats = FilterStats(
+        steps=xnp.asarray(0), interventions=xnp.asarray(0), correction_sum=xnp.asarray(0.0), infeasible=xnp.asarray(0)
+    )
+    return info, stats
+
+
+def _update_stats(stats: FilterStats, info: FilterInfo, xnp) -> FilterStats:
+    magnitude = xnp.sqrt(xnp.sum(xnp.square(info.correction)))
+    return FilterStats(
+        steps=stats.steps + 1,
+        interventions=stats.interventions + (magnitude > INTERVENTION_THRESHOLD).astype(stats.interventions.dtype),
+        correction_sum=stats.correction_sum + magnitude,
+        infeasible=stats.infeasible + xnp.logical_not(info.feasible).astype(stats.infeasible.dtype),
+    )
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class FilteredController:
+    """``controller`` followed by ``safety_filter``: a Controller (``scg_algorithms.base``) whose ``act`` calls the
+    controller, then ``certify`` with the filter's ``params``. JAX iff both parts are JAX.
+
+    The key of ``reset`` is split into the controller's and the filter's. ``info`` merges both parts' reports.
+    """
+
+    controller: Any
+    safety_filter: Any
+    nu: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.controller.name}+{self.safety_filter.name}"
+
+    @property
+    def is_jax(self) -> bool:
+        return bool(self.controller.is_jax and self.safety_filter.is_jax)
+
+    @property
+    def info(self) -> dict:
+        return {
+            "controller": dict(getattr(self.controller, "info", {}) or {}),
+            "safety_filter": {"name": self.safety_filter.name, **dict(getattr(self.safety_filter, "info", {}) or {})},
+        }
+
+    def reset(self, key, reference: Reference) -> FilteredState:
+        if self.is_jax:
+            ctrl_key, filter_key = jax.random.split(key)
+            info, stats = _initial_info_and_stats(self.nu, jnp)
+            return FilteredState(
+                self.controller.reset(ctrl_key, reference), self.safety_filter.reset(filter_key), info, stats
+            )
+        ctrl_key, filter_key = jax.random.split(key)
+        info, stats = _initial_info_and_stats(self.nu, np)
+        return FilteredState(self.controller.reset(ctrl_key, reference), self._filter_reset(filter_key), info, stats)
+
+    def act(self, ctrl_state: FilteredState, obs, step, reference: Reference):
+        u_unc, controller_state = self.controller.act(ctrl_state.controller, obs, step, reference)
+        if self.is_jax:
+            u, filter_state, info = self.safety_filter.certify(obs, u_unc, self.safety_filter.params, ctrl_state.filter)
+            stats = _update_stats(ctrl_state.stats, info, jnp)
+            return u, FilteredState(controller_state, filter_state, info, stats)
+        u, filter_state, info = self._filter_certify(obs, u_unc, ctrl_state.filter)
+        info = FilterInfo(
+            feasible=np.asarray(bool(np.asarray(info.feasible))),
+            slack=np.asarray(float(np.asarray(info.slack))),
+            correction=np.asarray(info.correction, dtype=np.float64).reshape(self.nu),
+        )
+        stats = _update_stats(ctrl_state.stats, info, np)
+        return np.asarray(u, dtype=np.float64).reshape(self.nu), FilteredState(
+            controller_state, filter_state, info, stats
+        )
+
+    # A JAX filter behind a host controller runs jitted on one copy; a host filter is called as is.
+    def _filter_reset(self, key):
+        if self.safety_filter.is_jax:
+            return jax.tree.map(np.asarray, self.safety_filter.reset(key))
+        return self.safety_filter.reset(key)
+
+    def _filter_certify(self, obs, u_unc, filter_state):
+        if self.safety_filter.is_jax:
+            certify = _jitted_certify(self.safety_filter)
+            out = certify(jnp.asarray(obs), jnp.asarray(u_unc), self.safety_filter.params, filter_state)
+            return jax.tree.map(np.asarray, out)
+        return self.safety_filter.certify(
+            np.asarray(obs, dtype=np.float64), np.asarray(u_unc, dtype=np.float64), self.safety_filter.params,
+            filter_state,
+        )  # fmt: skip
+
+
+_JITTED: dict = {}
+
+
+def _jitted_certify(safety_filter):
+    entry = _JITTED.get(id(safety_filter))
+    if entry is None or entry[0] is not safety_filter:
+        entry = (safety_filter, jax.jit(safety_filter.certify_fn))
+        _JITTED[id(safety_filter)] = entry
+    return entry[1]
+
+
+def filtered(controller, safety_filter, env=None) -> FilteredController:
+    """``controller`` with every input certified by ``safety_filter`` (see ``FilteredController``).
+
+    Args:
+        controller: an ``scg_algorithms.base.Controller`` (JAX or host). safety_filter: a ``SafetyFilter``.
+        env: when given, the filter must have been built for its system (``ValueError`` otherwise); the
+            evaluation harness checks it again against the env it runs.
+    """
+    for name in ("name", "is_jax", "reset", "act"):
+        if not hasattr(controller, name):
+            raise TypeError(f"controller: missing {name!r}; see scg_algorithms.base.Controller")
+    _check_filter(safety_filter)
+    if env is not None:
+        check_system(safety_filter, env)
+    nu = int(safety_filter.info.get("nu")) if "nu" in getattr(safety_filter, "info", {}) else None
+    if nu is None:
+        if env is None:
+            raise ValueError("filtered: give env, or a filter whose info holds 'nu'")
+        nu = env.nu
+    return FilteredController(controller, safety_filter, nu)
+
+
+def is_filtered(controller) -> bool:
+    """Whether ``controller`` is a ``FilteredController`` (the harness then reports intervention metrics)."""
+    return isinstance(controller, FilteredController)
+
+
+def filter_record(ctrl_state: FilteredState) -> dict:
+    """The per-step entries the harness records for a filtered controller, from its state after ``act``."""
+    return {
+        "filter_correction": ctrl_state.info.correction,
+        "filter_feasible": ctrl_state.info.feasible,
+        "filter_slack": ctrl_state.info.slack,
+    }
+
+
+def intervention_metrics(correction, feasible, length) -> dict:
+    """Intervention metrics over the steps inside each episode.
+
+    Args:
+        correction: (T, N, nu) ``u - u_uncertified``, N. feasible: (T, N) bool. length: (N,) episode lengths.
+
+    Returns:
+        ``intervention_fraction`` (steps with ``|correction| > INTERVENTION_THRESHOLD`` / steps),
+        ``mean_correction`` (mean ``|correction|`` over steps, N) and ``infeasible_fraction`` (steps with
+        ``feasible = False`` / steps), plain floats over all episodes' steps.
+    """
+    correction = np.asarray(correction, dtype=np.float64)
+    magnitude = np.sqrt(np.sum(np.square(correction), axis=-1))
+    in_episode = np.arange(magnitude.shape[0])[:, None] < np.asarray(length)[None, :]
+    steps = max(int(in_episode.sum()), 1)
+    return {
+        "intervention_fraction": float(((magnitude > INTERVENTION_THRESHOLD) & in_episode).sum() / steps),
+        "mean_correction": float(np.where(in_episode, magnitude, 0.0).sum() / steps),
+        "infeasible_fraction": float((~np.asarray(feasible, dtype=bool) & in_episode).sum() / steps),
+    }
+
+
+__all__ = [
+    "INTERVENTION_THRESHOLD",
+    "FilterInfo",
+    "FilterStats",
+    "FilteredController",
+    "FilteredState",
+    "HostFilter",
+    "JaxFilter",
+    "SafetyFilter",
+    "check_system",
+    "filter_record",
+    "filtered",
+    "intervention_metrics",
+    "is_filtered",
+]
