@@ -523,6 +523,12 @@ def _options_mapping(value, path):
     return {key: _plain(item) for key, item in value.items()}
 
 
+def _devices(value, path):
+    from scg_jax.sharding import check_devices
+
+    return check_devices(value, path)
+
+
 @dataclasses.dataclass(frozen=True)
 class Config(_Section):
     """A whole configuration file: the environment, and the settings of the methods run on it.
@@ -530,7 +536,8 @@ class Config(_Section):
     ``controllers.<name>`` holds the options of the controller ``name`` (``scg_algorithms.CONTROLLERS``; checked when
     the controller is built, messages name ``controllers.<name>.<key>``), ``training.<algo>`` the hyperparameters
     of the learner ``algo`` (``ppo``, ``sac``; checked by its ``make_train``). Both default to empty (every
-    option at its default).
+    option at its default). ``devices`` (``"all"`` or a count N) lays the env copies out over that many devices
+    (``scg_jax.sharding``; default: one device).
     """
 
     _name: ClassVar[str] = ""
@@ -540,6 +547,8 @@ class Config(_Section):
     training: dict = _field(
         _optional(_mapping_of(_options_mapping, "learner names (ppo, sac) to their hyperparameters")), None
     )
+    # The devices the env copies are laid out over (scg_jax.sharding): "all", a count N, or None (one device).
+    devices: Any = _field(_devices, None)
 
     def _check(self, path: str) -> None:
         for name in ("controllers", "training"):
@@ -551,6 +560,8 @@ class Config(_Section):
         for name in ("controllers", "training"):
             if not result.get(name):
                 result.pop(name, None)
+        if result.get("devices") is None:
+            result.pop("devices", None)
         return result
 
 
