@@ -69,12 +69,13 @@ def task_id(task: dict) -> str:
 
 
 def plan_tasks(grid: Sequence[tuple[str, list]], seeds: Sequence[int], controllers: Sequence[str]) -> list[dict]:
-    """Every ``(grid point, seed, controller)``, grid points outermost, in a fixed order."""
+    """Every ``(grid point, controller, seed)``, grid points outermost, seeds innermost (tasks that follow each other
+    share the env and controller), in a fixed order."""
     keys = [key for key, _ in grid]
     tasks = []
     for point in itertools.product(*(values for _, values in grid)):
-        for seed in seeds:
-            for controller in controllers:
+        for controller in controllers:
+            for seed in seeds:
                 task = {"grid": dict(zip(keys, point, strict=True)), "seed": int(seed), "controller": controller}
                 tasks.append({**task, "id": task_id(task)})
     return tasks
@@ -86,6 +87,9 @@ def task_overrides(task: dict) -> list[str]:
 
 
 # --------------------------------------------------------------------------------------------- one task
+_BUILT: dict = {}
+
+
 def evaluate_task(config_text: str, overrides: Sequence[str], task: dict, episodes: int) -> dict:
     """Run one task: ``{"summary": {METRICS...}, "run_s": seconds}``; raises whatever the evaluation raises."""
     import jax
@@ -94,9 +98,14 @@ def evaluate_task(config_text: str, overrides: Sequence[str], task: dict, episod
     from scg_cli.evaluate import _build_controller
     from scg_jax.config import load_config, make_from_config
 
-    cfg = load_config(config_text, [*overrides, *task_overrides(task)])
-    env, params = make_from_config(cfg)
-    controller = _build_controller(task["controller"], env, params, cfg, 1.0)
+    # Tasks that differ only in the seed share the env and controller, hence one compiled closed loop.
+    cache_key = json.dumps([config_text, list(overrides), task["grid"], task["controller"]], sort_keys=True)
+    if cache_key not in _BUILT:
+        cfg = load_config(config_text, [*overrides, *task_overrides(task)])
+        env, params = make_from_config(cfg)
+        _BUILT.clear()  # one entry: a sweep runs its tasks grid point by grid point
+        _BUILT[cache_key] = (env, params, _build_controller(task["controller"], env, params, cfg, 1.0))
+    env, params, controller = _BUILT[cache_key]
     start = time.perf_counter()
     evaluation = evaluate(env, params, controller, jax.random.key(task["seed"]), episodes, measure_time=False)
     summary = {name: evaluation.summary[name] for name in METRICS}
