@@ -40,6 +40,7 @@ def _worker(args) -> dict:
     from scg_algorithms.rl.collector import ActOutput, collect, init_collector
     from scg_algorithms.rl.envs import make_train_env
     from scg_algorithms.rl.networks import MLP
+    from scg_algorithms.rl.sharding import shard_runner_state
     from scg_jax import sharding
     from scg_jax.rollout import make_rollout
 
@@ -75,7 +76,7 @@ def _worker(args) -> dict:
     weights = actor.init(jax.random.key(1), jnp.zeros((1, train_env.obs_size)))
     state = init_collector(train_env, jax.random.key(2), params)
     if mesh is not None:
-        state = sharding.shard_runner_state(state, mesh)
+        state = shard_runner_state(state, mesh)
         weights, params = sharding.replicate((weights, params), mesh)
 
     def collect_once(weights, state, params, key):

@@ -140,27 +140,6 @@ def constrain_batch(tree, mesh: Mesh | None, axis: int = 0):
     return jax.tree.map(lambda leaf: jax.lax.with_sharding_constraint(leaf, sharding), tree)
 
 
-def shard_runner_state(runner_state, mesh: Mesh | None):
-    """A learner's runner state with its env copies sharded over ``mesh`` and everything else replicated.
-
-    The batched part of every learner's state is its ``collector`` (``scg_algorithms.rl.collector.CollectorState``:
-    env states, observations and episode sums of the N copies, axis 0); its ``last_episode`` means and
-    ``obs_stats`` are global, hence replicated, as are networks, optimiser states, replay buffers and keys.
-    """
-    if mesh is None:
-        return runner_state
-    from scg_algorithms.rl.collector import CollectorState
-
-    def place(node):
-        if isinstance(node, CollectorState):
-            batched = shard_batch((node.env_state, node.obs, node.episode_stats), mesh)
-            rest = replicate((node.last_episode, node.obs_stats), mesh)
-            return CollectorState(*batched, *rest)
-        return replicate(node, mesh)
-
-    return jax.tree.map(place, runner_state, is_leaf=lambda node: isinstance(node, CollectorState))
-
-
 def shardings_of(tree):
     """The ``.sharding`` of every leaf (for ``jit(in_shardings=..., out_shardings=...)``)."""
     return jax.tree.map(lambda leaf: leaf.sharding, tree)

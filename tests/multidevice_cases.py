@@ -15,6 +15,7 @@ import scg_jax
 from scg_algorithms.evaluation import evaluate
 from scg_algorithms.lqr import make_lqr
 from scg_algorithms.ppo import make_learner
+from scg_algorithms.rl.sharding import shard_runner_state
 from scg_algorithms.rl.training import run_training
 from scg_jax import sharding
 from scg_jax.rollout import make_rollout
@@ -124,7 +125,7 @@ def test_sharded_ppo_iteration_equals_the_single_device_one(cartpole, mesh, ppo)
     env, params = cartpole
     learner, state, single_update = ppo
     single_state, single_metrics = single_update(state, params)
-    placed = sharding.shard_runner_state(state, mesh)
+    placed = shard_runner_state(state, mesh)
     assert placed.collector.obs.sharding.spec == P(sharding.BATCH_AXIS)
     assert placed.params["log_std"].sharding.spec == P()
     layout = sharding.shardings_of(placed)

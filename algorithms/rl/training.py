@@ -114,7 +114,7 @@ def find_obs_stats(policy_params) -> RunningStats | None:
 def _make_chunk_runner(learner: Learner, max_chunk: int, state_shardings=None, mesh=None):
     """``run(runner_state, params, n) -> (runner_state, metrics (max_chunk, ...) per key)``: n iterations, n traced.
 
-    With a ``mesh`` the runner state keeps the layout ``state_shardings`` (``scg_jax.sharding.shard_runner_state``)
+    With a ``mesh`` the runner state keeps the layout ``state_shardings`` (``scg_algorithms.rl.sharding``)
     from chunk to chunk, and params and metrics are replicated."""
 
     def run(runner_state, params, n):
@@ -439,7 +439,9 @@ def run_training(
     else:
         runner_state = init(key, params)
     if mesh is not None:
-        runner_state = sharding.shard_runner_state(runner_state, mesh)
+        from scg_algorithms.rl.sharding import shard_runner_state
+
+        runner_state = shard_runner_state(runner_state, mesh)
         params = sharding.replicate(params, mesh)
 
     max_chunk = min(total, int(chunk) if chunk is not None else 1000)
