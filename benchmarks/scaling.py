@@ -118,9 +118,10 @@ def main() -> None:
         if not args.no_force:
             env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={n}"
         command = [sys.executable, __file__, "--worker", "--num-envs", str(args.num_envs), "--steps", str(args.steps)]
-        output = subprocess.run(
-            [*command, "--repeats", str(args.repeats)], env=env, capture_output=True, text=True, check=True
-        ).stdout
+        run = subprocess.run([*command, "--repeats", str(args.repeats)], env=env, capture_output=True, text=True)
+        if run.returncode:
+            raise SystemExit(f"the worker for {n} device(s) failed:\n{run.stderr[-3000:]}")
+        output = run.stdout
         result = json.loads(next(line for line in output.splitlines() if line.startswith("RESULT "))[7:])
         results.append(result)
         print(
