@@ -121,33 +121,35 @@ def ppo(cartpole, mesh):
     return learner, state, jax.jit(learner.update)
 
 
-def test_sharded_ppo_iteration_equals_the_single_device_one(cartpole, mesh, ppo):
+def test_sharded_ppo_training_equals_single_device_iterations(cartpole, mesh, ppo, tmp_path):
     env, params = cartpole
     learner, state, single_update = ppo
-    single_state, single_metrics = single_update(state, params)
     placed = shard_runner_state(state, mesh)
     assert placed.collector.obs.sharding.spec == P(sharding.BATCH_AXIS)
     assert placed.params["log_std"].sharding.spec == P()
-    layout = sharding.shardings_of(placed)
-    update = jax.jit(learner.update, in_shardings=(layout, sharding.replicated(mesh)), out_shardings=(layout, None))
-    sharded_state, sharded_metrics = update(placed, params)
-    # Gradients are the full batch's mean, reduced across devices by the compiler (once: not N_devices times).
-    assert _max_difference(single_state.params, sharded_state.params) <= 1e-5
-    assert _max_difference(single_metrics, sharded_metrics) <= 1e-4
-    assert float(sharded_metrics["grad_norm"]) == pytest.approx(float(single_metrics["grad_norm"]), rel=1e-4)
-    assert sharded_state.collector.env_state.x.sharding.spec == P(sharding.BATCH_AXIS)
-    assert _max_difference(state.params, sharded_state.params) > 1e-5  # the update did change the weights
-
-
-def test_sharded_run_training_equals_two_single_device_iterations(cartpole, mesh, ppo, tmp_path):
-    env, params = cartpole
-    learner, state, single_update = ppo
+    single = state
     for _ in range(learner.num_iterations):
-        state, metrics = single_update(state, params)
-    result = run_training(learner, env, params, jax.random.key(0), tmp_path, progress=False, csv=False, mesh=mesh)
+        single, metrics = single_update(single, params)
+    final_states = []
+
+    def policy_params(runner_state):  # run_training hands its final runner state here
+        final_states.append(runner_state)
+        return learner.policy_params(runner_state)
+
+    sharded_learner = learner._replace(policy_params=policy_params)
+    result = run_training(
+        sharded_learner, env, params, jax.random.key(0), tmp_path, progress=False, csv=False, mesh=mesh
+    )
+    final = final_states[-1]
     assert result["iterations"] == learner.num_iterations == 2
-    for name in ("loss", "grad_norm", "mean_reward", "policy_std"):
+    # Gradients are the full batch's mean, reduced across devices by the compiler (once: not N_devices times).
+    assert _max_difference(single.params, final.params) <= 1e-5
+    assert _max_difference(state.params, final.params) > 1e-5  # training did change the weights
+    for name in ("loss", "grad_norm", "mean_reward", "policy_std", "explained_variance"):
         assert result["final_metrics"][name] == pytest.approx(float(metrics[name]), rel=1e-4, abs=1e-6)
+    assert final.collector.env_state.x.sharding.spec == P(sharding.BATCH_AXIS)  # the layout kept chunk to chunk
+    assert len(final.collector.env_state.x.sharding.device_set) == NUM_DEVICES
+    assert final.params["log_std"].sharding.spec == P()
 
 
 def test_training_with_copies_that_do_not_divide_names_the_option(cartpole, mesh, tmp_path):
