@@ -162,7 +162,8 @@ _COMPILED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 def _compiled(kind: str, env, controller, axis, args) -> tuple[Any, float]:
     """``(executable, compile seconds)``; 0 s when it was compiled before for the same shapes."""
-    signature = jax.tree.map(lambda a: (jnp.shape(a), jnp.result_type(a)), args)
+    # The layout is part of the executable: a sharded evaluation compiles apart from the single-device one.
+    signature = jax.tree.map(lambda a: (jnp.shape(a), jnp.result_type(a), str(getattr(a, "sharding", None))), args)
     cache_key = (kind, id(env), axis, str(jax.tree.structure(args)), str(signature))
     entries = _COMPILED.setdefault(controller, {})
     entry = entries.get(cache_key)
@@ -175,18 +176,27 @@ def _compiled(kind: str, env, controller, axis, args) -> tuple[Any, float]:
     return executable, time.perf_counter() - start
 
 
-def _evaluate_jax(env, params, controller, key, num_episodes, batched_params, measure_time):
+def _evaluate_jax(env, params, controller, key, num_episodes, batched_params, measure_time, mesh=None):
     env_keys, ctrl_keys = _copy_keys(key, num_episodes)
     axis = _params_axis(batched_params)
+    if mesh is not None:  # copies laid out over the mesh's devices (and hosts); jit partitions the closed loop
+        from scg_jax import sharding
+
+        sharding.check_divisible(num_episodes, mesh, "num_episodes")
+        env_keys, ctrl_keys = sharding.shard_batch((env_keys, ctrl_keys), mesh)
+        params = sharding.shard_batch(params, mesh) if batched_params else sharding.replicate(params, mesh)
     compiled, compile_s = _compiled("loop", env, controller, axis, (env_keys, ctrl_keys, params))
     start = time.perf_counter()
     records, x_final, x_ref = jax.block_until_ready(compiled(env_keys, ctrl_keys, params))
     run_s = time.perf_counter() - start
+    if mesh is not None:  # every process gets every copy's records (a collective over the processes)
+        obs_on_devices = records["obs"]
+        records, x_final, x_ref = sharding.to_host((records, x_final, x_ref))
 
     timing = {"compile_s": compile_s, "run_s": run_s}
     per_step = per_batch_step = None
     if measure_time:
-        obs = records["obs"]
+        obs = records["obs"] if mesh is None else obs_on_devices
         replay_compiled, _ = _compiled("replay", env, controller, axis, (ctrl_keys, obs, params))
         jax.block_until_ready(replay_compiled(ctrl_keys, obs, params))
         start = time.perf_counter()
@@ -330,6 +340,7 @@ def evaluate(
     batched_params: bool = False,
     measure_time: bool = True,
     progress: bool = False,
+    mesh=None,
 ) -> Evaluation:
     """Run ``num_episodes`` episodes of ``env`` under ``controller`` and score them.
 
@@ -340,6 +351,9 @@ def evaluate(
         batched_params: ``params`` has a leading axis of size ``num_episodes`` (a sweep).
         measure_time: time JAX controllers alone (one extra replay); host controllers are always timed.
         progress: show a progress bar (host controllers, whose loop runs in Python).
+        mesh: ``scg_jax.sharding.make_mesh(devices)``: JAX controllers' copies are laid out over its devices and
+            processes (``num_episodes`` must divide evenly; every process gets all copies' results); host
+            controllers ignore it. ``None``: one device.
 
     Returns:
         ``Evaluation`` (see its docstring for the definitions).
@@ -349,7 +363,7 @@ def evaluate(
         check_system(controller.safety_filter, env)
     if controller.is_jax:
         trajectory, timing, per_step, per_batch_step = _evaluate_jax(
-            env, params, controller, key, num_episodes, batched_params, measure_time
+            env, params, controller, key, num_episodes, batched_params, measure_time, mesh
         )
     else:
         trajectory, timing, per_step, per_batch_step = _evaluate_host(

@@ -12,6 +12,7 @@ in ``_SUBCOMMANDS``):
 - ``train``: PPO or SAC with the config's ``training.ALGO`` hyperparameters, or GP-MPC's learning loop with its
   ``controllers.gp_mpc`` options, or a learned CBF (``--algo learned_cbf``); writes the policy (or the GP, or the
   filter), checkpoints, the learning curve and ``metrics.json`` (training summary and an evaluation).
+- ``sweep``: controllers over a grid of config values and seeds as tasks, in-process or on Ray; one table.
 
 Modules: ``common`` (environment options, the ``--out`` check, usage errors, tables), ``rollout``, ``evaluate``
 (eval and compare), ``train``.
@@ -30,6 +31,7 @@ from collections.abc import Callable
 from scg_cli.common import UsageError
 from scg_cli.evaluate import add_compare_parser, add_eval_parser, run_compare, run_eval
 from scg_cli.rollout import add_rollout_parser, run_rollout
+from scg_cli.sweep import add_sweep_parser, run_sweep_command
 from scg_cli.train import add_train_parser, run_train
 
 _SUBCOMMANDS: dict[str, tuple[Callable, Callable]] = {
@@ -37,6 +39,7 @@ _SUBCOMMANDS: dict[str, tuple[Callable, Callable]] = {
     "eval": (add_eval_parser, run_eval),
     "compare": (add_compare_parser, run_compare),
     "train": (add_train_parser, run_train),
+    "sweep": (add_sweep_parser, run_sweep_command),
 }
 
 

@@ -19,6 +19,7 @@ from scg_cli.common import (
     positive_int,
     summary_table,
 )
+from scg_cli.scale import add_scale_arguments, check_batch, is_main_process, make_mesh, start_distributed
 from scg_jax.files import write_atomic, write_json
 
 
@@ -69,6 +70,7 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument(
         "--out", type=Path, required=True, metavar="FILE.json", help=f"metrics JSON to write{OUT_CHECKED}"
     )
+    add_scale_arguments(parser, distributed=True)
     return parser
 
 
@@ -179,7 +181,7 @@ def _load_gp_mpc_run(path: Path, env, params, cfg, prior_scale: float):
         raise UsageError(f"argument --controller: {error}") from None
 
 
-def _evaluate(controller, env, params, args, console):
+def _evaluate(controller, env, params, args, console, mesh=None):
     """``evaluate`` with a spinner (JAX controllers: compile and run) or a progress bar (host controllers)."""
     import contextlib
 
@@ -194,7 +196,7 @@ def _evaluate(controller, env, params, args, console):
     )
     with waiting:
         return evaluate(
-            env, params, controller, jax.random.key(args.seed), args.episodes, progress=not controller.is_jax
+            env, params, controller, jax.random.key(args.seed), args.episodes, progress=not controller.is_jax, mesh=mesh
         )
 
 
@@ -221,12 +223,17 @@ def run_eval(args: argparse.Namespace, console) -> int:
 
     if args.out.suffix != ".json":
         raise UsageError(f"argument --out: expected a .json file name, got {str(args.out)!r}")
+    start_distributed(args)  # before any JAX computation
     check_output(args.out, "file")
     env, params, cfg = make_env(args)
+    mesh = make_mesh(args, cfg)
+    check_batch(mesh, args.episodes, "--episodes")
     controller = _with_filter(
         _build_controller(args.controller, env, params, cfg, args.prior_scale), env, params, cfg, args
     )
-    evaluation = _evaluate(controller, env, params, args, console)
+    evaluation = _evaluate(controller, env, params, args, console, mesh)
+    if not is_main_process():  # every process holds every copy's metrics; process 0 writes them
+        return 0
     npz_path, png_path = args.out.with_suffix(".npz"), args.out.with_suffix(".png")
     data = {
         **env_arrays(env, params),

@@ -20,6 +20,7 @@ from scg_cli.common import (
     make_env,
     positive_int,
 )
+from scg_cli.scale import add_scale_arguments, check_batch, make_mesh
 from scg_jax.files import write_atomic, write_json
 
 POLICIES = ("zero", "random", "linear")
@@ -55,6 +56,7 @@ def add_rollout_parser(subparsers) -> argparse.ArgumentParser:
         type=Path,
         help=f"output folder, created if missing (default: results/rollout/SYSTEM-TASK-POLICY-seedSEED){OUT_CHECKED}",
     )
+    add_scale_arguments(parser)
     return parser
 
 
@@ -107,6 +109,8 @@ def run_rollout(args: argparse.Namespace, console) -> int:
     from scg_jax.rollout import make_rollout
 
     env, params, cfg = make_env(args)
+    mesh = make_mesh(args, cfg)
+    check_batch(mesh, args.num_envs, "--num-envs")
     out = args.out or Path("results", "rollout", f"{env.system.name}-{env.task}-{args.policy}-seed{args.seed}")
     check_output(out, "dir")
 
@@ -118,7 +122,7 @@ def run_rollout(args: argparse.Namespace, console) -> int:
         stage = bar.add_task(f"compiling {args.num_envs} copies x {env.num_steps} steps", total=1)
         key = jax.random.key(args.seed)
         start = time.perf_counter()
-        rollout = make_rollout(env, policy, args.num_envs, auto_reset=False).lower(key, params).compile()
+        rollout = make_rollout(env, policy, args.num_envs, auto_reset=False, mesh=mesh).lower(key, params).compile()
         compile_s = time.perf_counter() - start
         bar.update(stage, completed=1)
 

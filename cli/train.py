@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from scg_cli.common import UsageError, add_env_arguments, check_output, jsonable, make_env, positive_int, summary_table
+from scg_cli.scale import add_scale_arguments, check_batch, make_mesh
 from scg_jax.files import write_json
 
 LEARNERS = ("ppo", "sac", "gp_mpc", "learned_cbf")
@@ -76,6 +77,7 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
         help="gp_mpc, learned_cbf: the prior model has every inertial parameter times this factor (default: 1)",
     )
     parser.set_defaults(_train_parser=parser)
+    add_scale_arguments(parser)
     return parser
 
 
@@ -177,6 +179,8 @@ def run_train(args: argparse.Namespace, console) -> int:
         learner = algorithm_module(args.algo, "make_learner")(config, env)
     except ValueError as error:
         raise UsageError(str(error)) from None
+    mesh = make_mesh(args, cfg)
+    check_batch(mesh, getattr(config, "num_envs", 1), f"--set training.{args.algo}.num_envs")
     _check_train_folder(args)
     key = jax.random.key(args.seed)
     train_key, eval_key = jax.random.split(key)
@@ -193,6 +197,7 @@ def run_train(args: argparse.Namespace, console) -> int:
             progress=True,
             progress_seconds=args.progress_interval,
             env_config=dump_config(cfg),
+            mesh=mesh,
         )
     except TrainingInterrupted as stop:
         resume = _train_command_line(args, resume=True, overwrite=False)

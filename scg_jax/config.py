@@ -528,6 +528,12 @@ def _options_mapping(value, path):
     return {key: _plain(item) for key, item in value.items()}
 
 
+def _devices(value, path):
+    from scg_jax.sharding import check_devices
+
+    return check_devices(value, path)
+
+
 @dataclasses.dataclass(frozen=True)
 class Config(_Section):
     """A whole configuration file: the environment, and the settings of the methods run on it.
@@ -537,6 +543,8 @@ class Config(_Section):
     of the learner ``algo`` (``ppo``, ``sac``; checked by its ``make_train``), ``safety_filters.<name>`` the options
     of the safety filter ``name`` (one of ``SAFETY_FILTER_NAMES``; the options are checked when the filter is built,
     messages name ``safety_filters.<name>.<key>``). All default to empty (every option at its default).
+    ``devices`` (``"all"`` or a count N) lays the env copies out over that many devices (``scg_jax.sharding``;
+    default: one device).
     """
 
     _name: ClassVar[str] = ""
@@ -549,6 +557,8 @@ class Config(_Section):
     safety_filters: dict = _field(
         _optional(_mapping_of(_options_mapping, "safety filter names to their options", SAFETY_FILTER_NAMES)), None
     )
+    # The devices the env copies are laid out over (scg_jax.sharding): "all", a count N, or None (one device).
+    devices: Any = _field(_devices, None)
 
     def _check(self, path: str) -> None:
         for name in ("controllers", "training", "safety_filters"):
@@ -560,6 +570,8 @@ class Config(_Section):
         for name in ("controllers", "training", "safety_filters"):
             if not result.get(name):
                 result.pop(name, None)
+        if result.get("devices") is None:
+            result.pop("devices", None)
         return result
 
 

@@ -111,6 +111,7 @@ def make_rollout(
     num_steps: int | None = None,
     auto_reset: bool = True,
     batched_params: bool = False,
+    mesh=None,
 ):
     """Build a jitted ``rollout(key, params) -> Trajectory`` of ``num_envs`` copies.
 
@@ -120,6 +121,9 @@ def make_rollout(
         auto_reset: restart finished episodes (otherwise a finished copy keeps stepping past its end; its
             ``terminated``/``truncated`` flags tell where to cut).
         batched_params: ``params`` has a leading axis of size ``num_envs`` on every leaf (a sweep).
+        mesh: a ``scg_jax.sharding.make_mesh`` mesh: the copies are laid out over its devices (``num_envs`` must
+            divide evenly; batched ``params`` are then passed sharded, ``scg_jax.sharding.shard_batch``); ``None``:
+            one device.
 
     Calling the returned function again with new keys or new params values of the same shapes does not
     retrace.
@@ -135,17 +139,24 @@ def make_rollout(
 
     batched_step = jax.vmap(one_step, in_axes=(0, 0, params_axis, 0))
     batched_reset = jax.vmap(env.reset, in_axes=(0, params_axis))
+    if mesh is not None:
+        from scg_jax.sharding import check_divisible, constrain_batch
+
+        check_divisible(num_envs, mesh)
+    else:
+        constrain_batch = lambda tree, mesh: tree  # noqa: E731
 
     @jax.jit
     def rollout(key, params: EnvParams) -> Trajectory:
         key_policy = jax.random.split(key)[1]  # [0] makes the reset keys (initial_reset_keys)
-        obs, state = batched_reset(initial_reset_keys(key, num_envs), params)
+        obs, state = batched_reset(constrain_batch(initial_reset_keys(key, num_envs), mesh), params)
 
         def body(carry, step_key):
-            obs, state = carry
-            out, action = batched_step(obs, state, params, jax.random.split(step_key, num_envs))
+            obs, state = constrain_batch(carry, mesh)
+            step_keys = constrain_batch(jax.random.split(step_key, num_envs), mesh)
+            out, action = batched_step(obs, state, params, step_keys)
             record = (obs, state.x, action, out.reward, out.cost, out.terminated, out.truncated, out.info)
-            return (out.obs, out.state), record
+            return (out.obs, out.state), constrain_batch(record, mesh)
 
         (_, final_state), records = jax.lax.scan(body, (obs, state), jax.random.split(key_policy, num_steps))
         return Trajectory(*records, final_state=final_state)
@@ -162,6 +173,7 @@ def rollout(
     num_steps: int | None = None,
     auto_reset: bool = True,
     batched_params: bool = False,
+    mesh=None,
 ) -> Trajectory:
     """One-shot convenience for ``make_rollout(...)(key, params)``; reuse ``make_rollout`` in loops."""
-    return make_rollout(env, policy, num_envs, num_steps, auto_reset, batched_params)(key, params)
+    return make_rollout(env, policy, num_envs, num_steps, auto_reset, batched_params, mesh)(key, params)

@@ -144,7 +144,7 @@ def test_section_keys_are_the_keys_make_accepts():
     assert set(DisturbanceConfig.keys()) == {"type", "mask"}.union(*disturbances_lib._KEYS.values())
     assert set(DistributionConfig.keys()) == {"type", "relative"}.union(*randomization._KEYS.values())
     assert set(AdversaryConfig.keys()) == {"channel", "scale"}
-    assert Config.keys() == ("env", "controllers", "training", "safety_filters")
+    assert Config.keys() == ("env", "controllers", "training", "safety_filters", "devices")
 
 
 @pytest.mark.parametrize("system", tuple(scg_jax.SYSTEMS))

@@ -111,8 +111,11 @@ def find_obs_stats(policy_params) -> RunningStats | None:
     return found[0] if found else None
 
 
-def _make_chunk_runner(learner: Learner, max_chunk: int):
-    """``run(runner_state, params, n) -> (runner_state, metrics (max_chunk, ...) per key)``: n iterations, n traced."""
+def _make_chunk_runner(learner: Learner, max_chunk: int, state_shardings=None, mesh=None):
+    """``run(runner_state, params, n) -> (runner_state, metrics (max_chunk, ...) per key)``: n iterations, n traced.
+
+    With a ``mesh`` the runner state keeps the layout ``state_shardings`` (``scg_algorithms.rl.sharding``)
+    from chunk to chunk, and params and metrics are replicated."""
 
     def run(runner_state, params, n):
         metric_shapes = jax.eval_shape(lambda s: learner.update(s, params)[1], runner_state)
@@ -127,6 +130,11 @@ def _make_chunk_runner(learner: Learner, max_chunk: int):
 
         return jax.lax.fori_loop(0, n, body, (runner_state, buffer))
 
+    if mesh is not None:
+        from scg_jax.sharding import replicated
+
+        whole = replicated(mesh)
+        return jax.jit(run, in_shardings=(state_shardings, whole, whole), out_shardings=(state_shardings, whole))
     return jax.jit(run)
 
 
@@ -327,6 +335,7 @@ def run_training(
     env_config: str | None = None,
     target_seconds_per_chunk: float = 1.0,
     on_chunk: Callable[[int], None] | None = None,
+    mesh=None,
 ) -> dict:
     """Train ``learner`` for its ``num_iterations`` on ``env`` with ``params``, writing results to ``out_dir``.
 
@@ -352,6 +361,9 @@ def run_training(
         env_config: the env configuration text (YAML) to store with the policy, so it can be rebuilt.
         on_chunk: called with the iteration count after each compiled call has been recorded (CSV rows written);
             an exception it raises stops the run (KeyboardInterrupt: as Ctrl-C).
+        mesh: ``scg_jax.sharding.make_mesh(devices)``: the env copies of the runner state are laid out over its
+            devices, networks and optimiser state replicated, and ``jit`` partitions collection and updates (the
+            gradient is the full batch's mean, all-reduced by the compiler). ``None``: one device. One process only.
 
     Returns:
         ``{"algo", "iterations", "env_steps", "total_time_s", "compile_time_s", "train_time_s",
@@ -378,6 +390,14 @@ def run_training(
         raise ValueError(f"progress_seconds: must be >= 0, got {progress_seconds!r}")
     if resume and overwrite:
         raise ValueError("resume, overwrite: give one of them (continue the run in out_dir, or replace it)")
+    if mesh is not None:
+        from scg_jax import sharding
+
+        if jax.process_count() > 1:
+            raise ValueError("mesh: run_training runs in one process; a multi-process mesh is for evaluate/rollouts")
+        num_envs = getattr(learner.config, "num_envs", None)
+        if num_envs is not None:
+            sharding.check_divisible(num_envs, mesh, f"training.{learner.name}.num_envs")
     config = config_dict(learner.config)
     key = raw_key(jnp.asarray(key))
 
@@ -418,12 +438,18 @@ def run_training(
         resumed_metrics = dict(meta.get("metrics") or {})
     else:
         runner_state = init(key, params)
+    if mesh is not None:
+        from scg_algorithms.rl.sharding import shard_runner_state
+
+        runner_state = shard_runner_state(runner_state, mesh)
+        params = sharding.replicate(params, mesh)
 
     max_chunk = min(total, int(chunk) if chunk is not None else 1000)
     compile_start = time.perf_counter()
     try:
         if iteration < total:  # a finished run resumed has nothing to compile
-            runner = _make_chunk_runner(learner, max_chunk)
+            shardings = None if mesh is None else sharding.shardings_of(runner_state)
+            runner = _make_chunk_runner(learner, max_chunk, shardings, mesh)
             compiled = runner.lower(runner_state, params, jnp.int32(1)).compile()
     except KeyboardInterrupt:  # Ctrl-C while compiling: nothing new to save
         saved = out_dir / f"{CHECKPOINT_NAME}.msgpack"
