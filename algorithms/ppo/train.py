@@ -149,7 +149,11 @@ def _learning_rate(config: Config, opt_state):
     return config.learning_rate * (1.0 - jnp.minimum(count, total) / total)
 
 
-def _functions(config: Config, env, variant: Variant = Variant()):
+PLAIN = Variant()
+"""Plain PPO: no variant."""
+
+
+def _functions(config: Config, env, variant: Variant = PLAIN):
     """init, update, policy_params and make_policy of a PPO run on ``env``, changed as ``variant`` says."""
     train_env = make_train_env(env, config.num_envs, config.action_scale)
     actor, critic = _networks(config, train_env.action_size)

@@ -115,7 +115,8 @@ def pretrain(config, train_env, key, params, rows):
 
     Returns:
         ``(layer, stats)``: ``layer = {"model": stacked MLP params, "A": A, "b": b}``; ``stats`` a dict of scalars:
-        ``constraint_model_mse`` (held-out), ``constraint_model_train_mse`` (last epoch's mean minibatch loss),
+        ``constraint_model_mse`` (held-out), ``constraint_model_baseline_mse`` (held-out, of ``c_next ~= c``),
+        ``constraint_model_train_mse`` (last epoch's mean minibatch loss),
         ``pretrain_env_steps``.
     """
     A, b = rows
@@ -166,6 +167,8 @@ def pretrain(config, train_env, key, params, rows):
     steps_per_epoch = (config.constraint_steps_per_epoch // n) * n
     stats = {
         "constraint_model_mse": model_loss(apply, model_params, *held_out),
+        # The same error of the model without an action effect (c_next ~= c): what the models explain.
+        "constraint_model_baseline_mse": jnp.mean((held_out[3] - held_out[2]) ** 2),
         "constraint_model_train_mse": losses[-1],
         "pretrain_env_steps": jnp.asarray(
             config.constraint_epochs * steps_per_epoch + (config.constraint_eval_steps // n) * n, jnp.float32

@@ -7,8 +7,8 @@ of the policy, and the PPO ratio differentiates through it). Exploration noise c
 as in the original. The deterministic policy saved for evaluation is ``clip(project(mu(obs)), -1, 1)``; it carries
 the frozen layer (``policy_params["layer"]``), so ``scg-jax eval --controller DIR`` runs it like any controller.
 
-Metrics added to PPO's: ``constraint_model_mse`` (held-out MSE of the pretrained models), ``constraint_model_train_mse``,
-``pretrain_env_steps`` (random-action steps spent on pretraining, not counted in ``env_steps``).
+Metrics added to PPO's: ``constraint_model_mse`` (held-out MSE of the pretrained models),
+``constraint_model_baseline_mse``, ``constraint_model_train_mse``, ``pretrain_env_steps`` (random-action steps spent on pretraining, not counted in ``env_steps``).
 """
 
 from __future__ import annotations
@@ -60,7 +60,8 @@ def make_learner(config, env, params=None) -> Learner:
     _, apply = layer_lib.make_constraint_model(config.constraint_hidden_dim, train_env.action_size)
 
     def init_aux(key, params):
-        layer, stats = layer_lib.pretrain(config, train_env, raw_key(key), params, layer_lib.state_constraint_rows(env, params))
+        rows = layer_lib.state_constraint_rows(env, params)
+        layer, stats = layer_lib.pretrain(config, train_env, raw_key(key), params, rows)
         return {"layer": layer, "stats": stats}
 
     def context(layer, raw_obs):
