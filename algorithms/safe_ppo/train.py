@@ -8,7 +8,8 @@ as in the original. The deterministic policy saved for evaluation is ``clip(proj
 the frozen layer (``policy_params["layer"]``), so ``scg-jax eval --controller DIR`` runs it like any controller.
 
 Metrics added to PPO's: ``constraint_model_mse`` (held-out MSE of the pretrained models),
-``constraint_model_baseline_mse``, ``constraint_model_train_mse``, ``pretrain_env_steps`` (random-action steps spent on pretraining, not counted in ``env_steps``).
+``constraint_model_baseline_mse``, ``constraint_model_train_mse``, ``pretrain_env_steps`` (random-action steps spent
+on pretraining, not counted in ``env_steps``).
 """
 
 from __future__ import annotations
