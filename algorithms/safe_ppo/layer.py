@@ -84,7 +84,8 @@ def constraint_values(layer, obs):
 
 def make_constraint_model(hidden: tuple[int, ...], action_size: int):
     """``(init(key, obs_size, m) -> params stacked over m rows, apply(params, obs (..., o)) -> g (..., m, d))``."""
-    net = MLP((*hidden, action_size), "tanh", final_scale=1.0)
+    # A small last layer starts every row near "the action has no effect" (c_next ~= c), the regression's baseline.
+    net = MLP((*hidden, action_size), "tanh", final_scale=0.1)
 
     def init(key, obs_size: int, num_rows: int):
         return jax.vmap(net.init, in_axes=(0, None))(jax.random.split(key, num_rows), jnp.zeros((1, obs_size)))
