@@ -37,12 +37,18 @@ def test_cost_advantage_worked_numbers():
     # delta = c + gamma (1 - term) V'_c - V_c = (0 + 0.25 - 0.5, 1 + 0.25 - 0.5, 1 + 0 - 0.5, 0 + 0.25 - 0.5)
     #       = (-0.25, 0.75, 0.5, -0.25);  A_3 = -0.25;  A_2 = 0.5 (episode end);  A_1 = 0.75 + 0.25 * 0.5 = 0.875;
     # A_0 = -0.25 + 0.25 * 0.875 = -0.03125; targets A + 0.5.
-    config = parse_learner_config(Config, {"cost_gamma": 0.5, "cost_gae_lambda": 0.5}, "training.ppo_lagrangian")
+    options = {"cost_gamma": 0.5, "cost_gae_lambda": 0.5, "termination_cost": "none"}
+    config = parse_learner_config(Config, options, "training.ppo_lagrangian")
     values = jnp.full(4, 0.5)
     terminated = jnp.array([False, False, True, False])
     adv, targets = cost_gae(jnp.array([0.0, 1.0, 1.0, 0.0]), values, values, terminated, jnp.zeros(4, bool), config)
     np.testing.assert_allclose(adv, [-0.03125, 0.875, 0.5, -0.25], rtol=1e-6)
     np.testing.assert_allclose(targets, [0.46875, 1.375, 1.0, 0.25], rtol=1e-6)
+    # Absorbing termination: the terminating step (cost 1) is followed by cost 1 forever, worth 1 / (1 - 0.5) = 2:
+    # delta_2 = 1 + 0.5 * 2 - 0.5 = 1.5 = A_2;  A_1 = 0.75 + 0.25 * 1.5 = 1.125;  A_0 = -0.25 + 0.25 * 1.125 = 0.03125.
+    config = parse_learner_config(Config, {**options, "termination_cost": "absorbing"}, "training.ppo_lagrangian")
+    adv, _ = cost_gae(jnp.array([0.0, 1.0, 1.0, 0.0]), values, values, terminated, jnp.zeros(4, bool), config)
+    np.testing.assert_allclose(adv, [0.03125, 1.125, 1.5, -0.25], rtol=1e-6)
 
 
 def test_bad_cost_limits_are_named():

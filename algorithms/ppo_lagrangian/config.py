@@ -27,10 +27,18 @@ class Config(PPOConfig):
     lambda_lr: float = option(0.035, "step size of the multiplier's projected gradient ascent")
     cost_gamma: float = option(0.99, "discount of the cost returns")
     cost_gae_lambda: float = option(0.95, "GAE lambda of the cost advantages")
+    termination_cost: str = option(
+        "absorbing",
+        "absorbing: a terminated episode keeps its last step's cost forever (bootstrap cost / (1 - cost_gamma)), so "
+        "crashing does not end the costs; none: nothing follows a termination",
+        choices=("absorbing", "none"),
+    )
 
     def _check(self, path: str) -> None:
         super()._check(path)
         check_fields(self, path, positive_fields=("lambda_lr",), nonnegative=("cost_limit", "lagrange_init"),
                      closed_unit=("cost_gamma", "cost_gae_lambda"))  # fmt: skip
+        if self.termination_cost == "absorbing" and self.cost_gamma >= 1:
+            raise ValueError(f"{path}.cost_gamma: must be < 1 with termination_cost absorbing, got {self.cost_gamma!r}")
         if self.cost_limit_unit == "fraction" and self.cost_limit > 1:
             raise ValueError(f"{path}.cost_limit: a fraction of steps must be in [0, 1], got {self.cost_limit!r}")

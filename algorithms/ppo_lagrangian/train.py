@@ -50,7 +50,19 @@ def combine_advantages(reward_advantages, cost_advantages, multiplier):
 
 def cost_gae(cost, cost_values, next_cost_values, terminated, truncated, config: Config):
     """Cost advantages and cost-value targets, (T, N) each: ``losses.gae`` on the per-step cost (1 at a step in
-    violation) with ``cost_gamma`` and ``cost_gae_lambda`` (a termination's cost counts, nothing after it)."""
+    violation) with ``cost_gamma`` and ``cost_gae_lambda``.
+
+    With ``termination_cost: absorbing`` a terminated episode is taken to stay where it ended: the step's cost
+    continues forever, so the bootstrap at a termination is ``cost_t / (1 - cost_gamma)`` instead of 0 (the trace
+    still stops there). Otherwise ending an episode early would end its costs too, and a large multiplier would
+    teach the policy to crash. With ``none`` nothing follows a termination.
+    """
+    if config.termination_cost == "absorbing":
+        next_cost_values = jnp.where(terminated, cost / (1.0 - config.cost_gamma), next_cost_values)
+        return losses.gae(
+            cost, cost_values, next_cost_values, jnp.zeros_like(terminated), terminated | truncated,
+            config.cost_gamma, config.cost_gae_lambda,
+        )  # fmt: skip
     return losses.gae(
         cost, cost_values, next_cost_values, terminated, truncated, config.cost_gamma, config.cost_gae_lambda
     )
