@@ -13,7 +13,7 @@ from scg_cli.common import UsageError, add_env_arguments, check_output, jsonable
 from scg_cli.scale import add_scale_arguments, check_batch, make_mesh
 from scg_jax.files import write_json
 
-LEARNERS = ("ppo", "sac", "gp_mpc", "learned_cbf")
+LEARNERS = ("ppo", "sac", "gp_mpc", "learned_cbf", "safe_ppo", "ppo_lagrangian")
 
 
 def _positive_seconds(text: str) -> float:
@@ -162,7 +162,9 @@ def run_train(args: argparse.Namespace, console) -> int:
     if args.algo == "learned_cbf":
         return _run_train_learned_cbf(args, console)
     if args.prior_scale != 1.0:
-        raise UsageError(f"argument --prior-scale: only gp_mpc learns on a prior model; {args.algo} has none")
+        raise UsageError(
+            f"argument --prior-scale: only gp_mpc and learned_cbf learn on a prior model; {args.algo} has none"
+        )
     import jax
 
     from scg_algorithms.base import parse_options

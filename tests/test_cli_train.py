@@ -147,4 +147,4 @@ def test_train_gp_mpc_refuses_a_folder_of_another_algorithm_and_ppo_a_prior_scal
     assert main(["train", "--algo", "gp_mpc", *_ENV, "--out", str(out)]) == 2
     assert "already holds a training run of another algorithm (checkpoint.json, progress.csv)" in _error(capsys)
     assert main(["train", "--algo", "ppo", *_ENV, "--prior-scale", "1.5", "--out", str(tmp_path / "p")]) == 2
-    assert "only gp_mpc learns on a prior model; ppo has none" in _error(capsys)
+    assert "only gp_mpc and learned_cbf learn on a prior model; ppo has none" in _error(capsys)

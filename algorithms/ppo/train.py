@@ -23,7 +23,7 @@ the env's (drawn at every reset from ``params``), so training on a randomised po
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
 
 import jax
@@ -49,7 +49,9 @@ class Transition(NamedTuple):
     Attributes:
         obs: normalised observation acted on. action: unclipped Gaussian sample (N, d). log_prob: its log-density.
         value: V(obs). next_value: V(final_obs), the value of the observation the step reached (before any reset).
-        reward: scaled reward. terminated, truncated: bools.
+        reward: scaled reward. terminated, truncated: bools. cost: (T, N) constrained-MDP cost (1 at a step in
+        violation). next_obs: normalised ``final_obs``. context: the ``Variant.context`` of the step (``()`` for
+        plain PPO).
     """
 
     obs: Any
@@ -60,6 +62,38 @@ class Transition(NamedTuple):
     reward: Any
     terminated: Any
     truncated: Any
+    cost: Any = None
+    next_obs: Any = None
+    context: Any = ()
+
+
+class Variant(NamedTuple):
+    """What a PPO variant changes in the one PPO skeleton (``_functions``); every field ``None`` is plain PPO.
+
+    Attributes:
+        init_aux: ``init_aux(key, params) -> aux``: the variant's own state (a pretrained safety layer, a Lagrange
+            multiplier and cost critic), carried in ``RunnerState.aux``. ``key`` is derived from the run's key
+            without consuming it, so PPO's own random numbers are unchanged.
+        context: ``context(layer, raw_obs (..., obs_size)) -> pytree (..., ...)``: what ``project`` needs per
+            observation, computed when acting and stored with the step; ``layer = policy_aux(aux)``.
+        project: ``project(context, mean (..., d)) -> mean (..., d)``: an action projection of the policy mean
+            (part of the policy: the log-probabilities are those of the projected mean).
+        prepare: ``prepare(aux, traj, episode, data, flat) -> (aux, data, metrics)``: after GAE, before the
+            SGD epochs (e.g. the multiplier update and the cost advantages); ``data`` the flat batch dict.
+        advantages: ``advantages(aux, minibatch) -> (B,)``: the advantages the actor's loss uses (default:
+            ``data["advantages"]``, normalised per minibatch when ``normalize_advantages``).
+        aux_step: ``aux_step(aux, minibatch) -> (aux, info)``: a gradient step of the variant's own networks on
+            each minibatch (its own optimiser, so PPO's gradient clipping is unchanged).
+        policy_aux: ``policy_aux(aux) -> pytree`` saved with the policy as ``policy_params["layer"]``.
+    """
+
+    init_aux: Callable | None = None
+    context: Callable | None = None
+    project: Callable | None = None
+    prepare: Callable | None = None
+    advantages: Callable | None = None
+    aux_step: Callable | None = None
+    policy_aux: Callable | None = None
 
 
 class RunnerState(NamedTuple):
@@ -69,7 +103,8 @@ class RunnerState(NamedTuple):
         params: ``{"actor": flax params, "critic": flax params, "log_std": (d,)}``. opt_state: optax state.
         collector: ``scg_algorithms.rl.collector.CollectorState`` (batched env state, observations to act on next,
         episode sums, the last episode means, the observation normaliser). key: raw PRNG key.
-        env_steps: ``Count`` (exact past 2^31) of env steps so far.
+        env_steps: ``Count`` (exact past 2^31) of env steps so far. aux: a ``Variant``'s own state (``()``, no
+        leaves, for plain PPO).
     """
 
     params: Any
@@ -77,6 +112,7 @@ class RunnerState(NamedTuple):
     collector: CollectorState
     key: Any
     env_steps: Count
+    aux: Any = ()
 
     @property
     def obs_stats(self) -> RunningStats:
@@ -113,8 +149,12 @@ def _learning_rate(config: Config, opt_state):
     return config.learning_rate * (1.0 - jnp.minimum(count, total) / total)
 
 
-def _functions(config: Config, env):
-    """init, update, policy_params and make_policy of a PPO run on ``env``."""
+PLAIN = Variant()
+"""Plain PPO: no variant."""
+
+
+def _functions(config: Config, env, variant: Variant = PLAIN):
+    """init, update, policy_params and make_policy of a PPO run on ``env``, changed as ``variant`` says."""
     train_env = make_train_env(env, config.num_envs, config.action_scale)
     actor, critic = _networks(config, train_env.action_size)
     optimizer = _optimizer(config)
@@ -128,6 +168,16 @@ def _functions(config: Config, env):
     def value_fn(critic_params, obs):
         return critic.apply(critic_params, obs)[..., 0]
 
+    def policy_mean(actor_params, obs, context):
+        mean = actor.apply(actor_params, obs)
+        return mean if variant.project is None else variant.project(context, mean)
+
+    def layer_of(aux):
+        return None if variant.policy_aux is None else variant.policy_aux(aux)
+
+    def context_of(layer, raw_obs):
+        return () if variant.context is None else variant.context(layer, raw_obs)
+
     def init(key, params) -> RunnerState:
         key = raw_key(key)
         key, key_actor, key_critic, key_env = jax.random.split(key, 4)
@@ -137,12 +187,15 @@ def _functions(config: Config, env):
             "critic": critic.init(key_critic, dummy),
             "log_std": jnp.full((train_env.action_size,), config.init_log_std, jnp.float32),
         }
+        # The variant's key is folded from the env key: PPO's own splits (and so its numbers) stay as they were.
+        aux = () if variant.init_aux is None else variant.init_aux(jax.random.fold_in(key_env, 1), params)
         return RunnerState(
             params=net_params,
             opt_state=optimizer.init(net_params),
             collector=init_collector(train_env, key_env, params),
             key=key,
             env_steps=zero_count(),
+            aux=aux,
         )
 
     def rollout(runner: RunnerState, params, key):
@@ -151,14 +204,17 @@ def _functions(config: Config, env):
         net = runner.params
         stats = runner.collector.obs_stats
         std = jnp.exp(net["log_std"])
+        layer = layer_of(runner.aux)
 
         def act(raw_obs, step_key) -> ActOutput:
             obs = observe(stats, raw_obs)
-            mean = actor.apply(net["actor"], obs)
+            context = context_of(layer, raw_obs)
+            mean = policy_mean(net["actor"], obs, context)
             action = mean + std * jax.random.normal(step_key, mean.shape, mean.dtype)
             extras = {
                 "log_prob": losses.gaussian_log_prob(mean, net["log_std"], action),
                 "value": value_fn(net["critic"], obs),
+                "context": context,
             }
             return ActOutput(action, extras)
 
@@ -171,24 +227,31 @@ def _functions(config: Config, env):
             config.rollout_length,
             update_normalizer=config.normalize_observations,
         )
+        next_obs = observe(stats, steps.next_obs)
         traj = Transition(
             obs=observe(stats, steps.obs),
             action=steps.action,
             log_prob=steps.extras["log_prob"],
             value=steps.extras["value"],
-            next_value=value_fn(net["critic"], observe(stats, steps.next_obs)),
+            next_value=value_fn(net["critic"], next_obs),
             reward=steps.reward * config.reward_scale,
             terminated=steps.terminated,
             truncated=steps.truncated,
+            cost=steps.cost,
+            next_obs=next_obs,
+            context=steps.extras["context"],
         )
         return collector, traj, episode
 
-    def loss_fn(net_params, mb):
-        mean = actor.apply(net_params["actor"], mb["obs"])
+    def loss_fn(net_params, aux, mb):
+        mean = policy_mean(net_params["actor"], mb["obs"], mb["context"])
         values = value_fn(net_params["critic"], mb["obs"])
-        advantages = mb["advantages"]
-        if config.normalize_advantages:
-            advantages = losses.normalize_advantages(advantages)
+        if variant.advantages is not None:
+            advantages = variant.advantages(aux, mb)
+        else:
+            advantages = mb["advantages"]
+            if config.normalize_advantages:
+                advantages = losses.normalize_advantages(advantages)
         return losses.ppo_loss(
             mean,
             net_params["log_std"],
@@ -207,11 +270,15 @@ def _functions(config: Config, env):
     grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
 
     def sgd_step(carry, mb):
-        net_params, opt_state = carry
-        (loss, info), grads = grad_fn(net_params, mb)
+        net_params, opt_state, aux = carry
+        (loss, info), grads = grad_fn(net_params, aux, mb)
         updates, opt_state = optimizer.update(grads, opt_state, net_params)
         net_params = optax.apply_updates(net_params, updates)
-        return (net_params, opt_state), {**info, "loss": loss, "grad_norm": optax.tree.norm(grads)}
+        info = {**info, "loss": loss, "grad_norm": optax.tree.norm(grads)}
+        if variant.aux_step is not None:
+            aux, aux_info = variant.aux_step(aux, mb)
+            info = {**info, **aux_info}
+        return (net_params, opt_state, aux), info
 
     def epoch(carry, key, data):
         permutation = jax.random.permutation(key, batch)
@@ -240,10 +307,14 @@ def _functions(config: Config, env):
             "value": flat(traj.value),
             "advantages": flat(advantages),
             "returns": flat(returns),
+            "context": jax.tree.map(flat, traj.context),
         }
-        (net_params, opt_state), infos = jax.lax.scan(
+        aux, variant_metrics = runner.aux, {}
+        if variant.prepare is not None:
+            aux, data, variant_metrics = variant.prepare(aux, traj, episode, data, flat)
+        (net_params, opt_state, aux), infos = jax.lax.scan(
             lambda carry, k: epoch(carry, k, data),
-            (runner.params, runner.opt_state),
+            (runner.params, runner.opt_state, aux),
             jax.random.split(key_sgd, config.num_epochs),
         )
         env_steps = add_count(runner.env_steps, batch)
@@ -256,24 +327,30 @@ def _functions(config: Config, env):
             "policy_std": jnp.mean(jnp.exp(net_params["log_std"])),
             "explained_variance": 1.0 - jnp.var(residual) / jnp.maximum(jnp.var(data["returns"]), 1e-8),
             "mean_reward": jnp.mean(traj.reward) / config.reward_scale,
+            "violation_fraction": jnp.mean(traj.cost),
+            **variant_metrics,
         }
         new_runner = RunnerState(
-            params=net_params, opt_state=opt_state, collector=collector, key=key, env_steps=env_steps
+            params=net_params, opt_state=opt_state, collector=collector, key=key, env_steps=env_steps, aux=aux
         )
         return new_runner, metrics
 
     def policy_params(runner: RunnerState) -> dict:
-        return {
+        saved = {
             "actor": runner.params["actor"],
             "log_std": runner.params["log_std"],
             "obs_stats": runner.collector.obs_stats,
         }
+        if variant.policy_aux is not None:
+            saved["layer"] = variant.policy_aux(runner.aux)
+        return saved
 
     def make_policy(policy_params: Mapping):
         """``policy(obs, key=None) -> a`` in [-1, 1]: ``clip(mu)`` without a key, a clipped sample with one."""
 
         def policy(obs, key=None):
-            mean = actor.apply(policy_params["actor"], observe(policy_params["obs_stats"], obs))
+            context = context_of(policy_params.get("layer"), obs)
+            mean = policy_mean(policy_params["actor"], observe(policy_params["obs_stats"], obs), context)
             if key is None:
                 return jnp.clip(mean, -1.0, 1.0)
             noise = jax.random.normal(raw_key(key), mean.shape, mean.dtype)
@@ -282,6 +359,21 @@ def _functions(config: Config, env):
         return policy
 
     return init, update, policy_params, make_policy
+
+
+def make_variant_learner(name: str, config, env, variant: Variant) -> Learner:
+    """A PPO ``variant`` (a checked ``Config`` subclass instance) as a ``Learner`` named ``name``."""
+    init, update, policy_params, make_policy = _functions(config, env, variant)
+    return Learner(
+        name=name,
+        config=config,
+        init=init,
+        update=update,
+        num_iterations=config.num_iterations,
+        steps_per_iteration=config.batch_size,
+        policy_params=policy_params,
+        make_policy=make_policy,
+    )
 
 
 def make_learner(config, env) -> Learner:

@@ -560,7 +560,9 @@ def run_training(
         },
     )
     if csv:
-        plot_learning_curve(csv_path, out_dir / CURVE_NAME, rmse_label=rmse_label(env, params))
+        plot_learning_curve(
+            csv_path, out_dir / CURVE_NAME, rmse_label=rmse_label(env, params), ctrl_freq=float(env.ctrl_freq)
+        )
     total_s = time.perf_counter() - start
     run_s = time.perf_counter() - run_start
     session_steps = env_steps - steps_at_start
@@ -621,9 +623,15 @@ CURVE_PANELS = (
 )
 
 
-def plot_learning_curve(csv_path, png_path, rmse_label: str = "RMSE (weighted state error)") -> None:
+def plot_learning_curve(
+    csv_path, png_path, rmse_label: str = "RMSE (weighted state error)", ctrl_freq: float | None = None
+) -> None:
     """Plot ``progress.csv`` against env steps: return, RMSE, cost and length per episode, plus every ``*loss*``
     column, one panel each (the panels whose column is missing are left out); written atomically as a PNG.
+
+    With ``ctrl_freq`` (Hz) and the ``episode_cost`` and ``episode_length`` columns, one more panel plots the
+    fraction of steps in violation (episode cost over episode length) against seconds of simulated training data
+    (``env_steps / ctrl_freq``, log scale), the x-axis of the paper's constraint figure.
 
     ``nan`` entries (no episode had ended yet) are left out of the lines rather than drawn as 0.
     """
@@ -638,8 +646,10 @@ def plot_learning_curve(csv_path, png_path, rmse_label: str = "RMSE (weighted st
     panels = [(name, label or rmse_label) for name, label in CURVE_PANELS if name in columns]
     panels += [(name, name) for name in columns if "loss" in name]
     steps = np.array([float(row["env_steps"]) for row in rows])
-    ncols = min(3, max(len(panels), 1))
-    nrows = max(1, math.ceil(len(panels) / ncols))
+    violation_panel = ctrl_freq is not None and {"episode_cost", "episode_length"} <= set(columns)
+    num_panels = len(panels) + int(violation_panel)
+    ncols = min(3, max(num_panels, 1))
+    nrows = max(1, math.ceil(num_panels / ncols))
     fig = Figure(figsize=(4.2 * ncols, 3.0 * nrows), layout="constrained")
     FigureCanvasAgg(fig)
     for i, (name, label) in enumerate(panels):
@@ -649,5 +659,14 @@ def plot_learning_curve(csv_path, png_path, rmse_label: str = "RMSE (weighted st
         ax.set_xlabel("env steps")
         ax.set_ylabel(label, fontsize=9)
         ax.set_title(label, fontsize=10)
+        ax.grid(alpha=0.3)
+    if violation_panel:
+        ax = fig.add_subplot(nrows, ncols, len(panels) + 1)
+        cost, length = (np.array([float(row[n]) if row[n] != "" else math.nan for row in rows]) for n in
+                        ("episode_cost", "episode_length"))  # fmt: skip
+        ax.plot(steps / ctrl_freq, cost / length, lw=1.2)
+        ax.set_xscale("log")
+        ax.set_xlabel("simulated training data (s)")
+        ax.set_title("fraction of steps in violation", fontsize=10)
         ax.grid(alpha=0.3)
     write_atomic(png_path, lambda file: fig.savefig(file, format="png", dpi=100))

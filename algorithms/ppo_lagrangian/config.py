@@ -1,0 +1,44 @@
+"""PPO-Lagrangian hyperparameters (a config file's ``training.ppo_lagrangian`` section): PPO's plus the cost
+critic's and the multiplier's (names after OmniSafe's ``PPOLag``)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from scg_algorithms.base import option
+from scg_algorithms.ppo.config import Config as PPOConfig
+from scg_algorithms.rl.config import check_fields
+
+COST_LIMIT_UNITS = ("fraction", "per_episode")
+
+
+@dataclasses.dataclass(frozen=True)
+class Config(PPOConfig):
+    """PPO's options (``scg_algorithms.ppo.Config``) and the constrained-MDP ones."""
+
+    cost_limit: float = option(0.01, "the limit d on the expected cost J_c (unit: cost_limit_unit)")
+    cost_limit_unit: str = option(
+        "fraction",
+        "fraction: J_c is the fraction of the rollout's steps in violation (every step counts, every iteration); "
+        "per_episode: J_c is the mean number of violating steps per episode finished in the rollout",
+        choices=COST_LIMIT_UNITS,
+    )
+    lagrange_init: float = option(0.0, "initial Lagrange multiplier (>= 0)")
+    lambda_lr: float = option(0.035, "step size of the multiplier's projected gradient ascent")
+    cost_gamma: float = option(0.99, "discount of the cost returns")
+    cost_gae_lambda: float = option(0.95, "GAE lambda of the cost advantages")
+    termination_cost: str = option(
+        "absorbing",
+        "absorbing: a terminated episode keeps its last step's cost forever (bootstrap cost / (1 - cost_gamma)), so "
+        "crashing does not end the costs; none: nothing follows a termination",
+        choices=("absorbing", "none"),
+    )
+
+    def _check(self, path: str) -> None:
+        super()._check(path)
+        check_fields(self, path, positive_fields=("lambda_lr",), nonnegative=("cost_limit", "lagrange_init"),
+                     closed_unit=("cost_gamma", "cost_gae_lambda"))  # fmt: skip
+        if self.termination_cost == "absorbing" and self.cost_gamma >= 1:
+            raise ValueError(f"{path}.cost_gamma: must be < 1 with termination_cost absorbing, got {self.cost_gamma!r}")
+        if self.cost_limit_unit == "fraction" and self.cost_limit > 1:
+            raise ValueError(f"{path}.cost_limit: a fraction of steps must be in [0, 1], got {self.cost_limit!r}")

@@ -1,0 +1,111 @@
+"""PPO-Lagrangian: the multiplier update, the combined advantage and the cost advantage on worked numbers; bad
+input; and, on the constraint task, exactly PPO's parameters while the multiplier stays 0, but not otherwise."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from scg_algorithms import ppo
+from scg_algorithms.ppo_lagrangian import Config, combine_advantages, make_learner, multiplier_update
+from scg_algorithms.ppo_lagrangian.train import cost_gae
+from scg_algorithms.rl.config import parse_learner_config
+from scg_jax.config import load_config, make_from_config
+from tests.rl_helpers import tiny_ppo
+
+CONFIG = "configs/paper_cartpole_constraint_rl.yaml"
+CHEAP = ["env.physics_freq=50", "env.integrator=euler"]  # one Euler substep a control step: quick to compile
+TINY = tiny_ppo(total_env_steps=384, num_epochs=2, num_minibatches=2)  # 3 iterations of 8 copies x 16 steps
+
+
+def test_multiplier_update_worked_numbers():
+    # lambda + lr (J_c - d), floored at 0: 0.5 + 0.035 * (0.03 - 0.01) = 0.5007; 0.001 + 0.035 * (0 - 0.01) = 0.00065;
+    # 0.0001 - 0.00035 < 0 -> 0; no measurement (NaN) -> unchanged.
+    lam = jnp.array([0.5, 0.001, 0.0001, 0.2])
+    cost = jnp.array([0.03, 0.0, 0.0, jnp.nan])
+    np.testing.assert_allclose(multiplier_update(lam, cost, 0.01, 0.035), [0.5007, 0.00065, 0.0, 0.2], rtol=1e-5)
+
+
+def test_combined_advantage_worked_numbers():
+    # lambda = 1: ((1 - 3) / 2, (2 + 1) / 2); lambda = 0: A_r unchanged.
+    np.testing.assert_allclose(combine_advantages(jnp.array([1.0, 2.0]), jnp.array([3.0, -1.0]), 1.0), [-1.0, 1.5])
+    np.testing.assert_array_equal(combine_advantages(jnp.array([1.0, 2.0]), jnp.array([3.0, -1.0]), 0.0), [1.0, 2.0])
+
+
+def test_cost_advantage_worked_numbers():
+    # Costs (0, 1, 1, 0), V_c = 0.5 everywhere, cost_gamma 0.5, cost_gae_lambda 0.5; step 2 terminates.
+    # delta = c + gamma (1 - term) V'_c - V_c = (0 + 0.25 - 0.5, 1 + 0.25 - 0.5, 1 + 0 - 0.5, 0 + 0.25 - 0.5)
+    #       = (-0.25, 0.75, 0.5, -0.25);  A_3 = -0.25;  A_2 = 0.5 (episode end);  A_1 = 0.75 + 0.25 * 0.5 = 0.875;
+    # A_0 = -0.25 + 0.25 * 0.875 = -0.03125; targets A + 0.5.
+    options = {"cost_gamma": 0.5, "cost_gae_lambda": 0.5, "termination_cost": "none"}
+    config = parse_learner_config(Config, options, "training.ppo_lagrangian")
+    values = jnp.full(4, 0.5)
+    terminated = jnp.array([False, False, True, False])
+    adv, targets = cost_gae(jnp.array([0.0, 1.0, 1.0, 0.0]), values, values, terminated, jnp.zeros(4, bool), config)
+    np.testing.assert_allclose(adv, [-0.03125, 0.875, 0.5, -0.25], rtol=1e-6)
+    np.testing.assert_allclose(targets, [0.46875, 1.375, 1.0, 0.25], rtol=1e-6)
+    # Absorbing termination: the terminating step (cost 1) is followed by cost 1 forever, worth 1 / (1 - 0.5) = 2:
+    # delta_2 = 1 + 0.5 * 2 - 0.5 = 1.5 = A_2;  A_1 = 0.75 + 0.25 * 1.5 = 1.125;  A_0 = -0.25 + 0.25 * 1.125 = 0.03125.
+    config = parse_learner_config(Config, {**options, "termination_cost": "absorbing"}, "training.ppo_lagrangian")
+    adv, _ = cost_gae(jnp.array([0.0, 1.0, 1.0, 0.0]), values, values, terminated, jnp.zeros(4, bool), config)
+    np.testing.assert_allclose(adv, [0.03125, 1.125, 1.5, -0.25], rtol=1e-6)
+
+
+def test_bad_cost_limits_are_named():
+    env, _ = make_from_config(load_config(CONFIG, CHEAP))
+    with pytest.raises(ValueError, match=r"training.ppo_lagrangian.cost_limit: must be >= 0, got -0.5"):
+        make_learner({**TINY, "cost_limit": -0.5}, env)
+    with pytest.raises(ValueError, match=r"training.ppo_lagrangian.cost_limit: a fraction of steps must be in"):
+        make_learner({**TINY, "cost_limit": 2.0}, env)
+    with pytest.raises(ValueError, match=r"training.ppo_lagrangian.cost_limit_unit"):
+        make_learner({**TINY, "cost_limit_unit": "percent"}, env)
+
+
+def _runner(learner, env_params):
+    """``run(multiplier=None)``: the whole run from seed 0 (init and iterations jitted once, reused), optionally
+    starting the Lagrange multiplier at ``multiplier``."""
+    init = jax.jit(learner.init)
+    iterate = jax.jit(
+        lambda r: jax.lax.scan(lambda r, _: learner.update(r, env_params), r, None, learner.num_iterations)
+    )
+
+    def run(multiplier=None):
+        runner = init(jax.random.key(0), env_params)
+        if multiplier is not None:
+            runner = runner._replace(aux={**runner.aux, "multiplier": jnp.asarray(multiplier, jnp.float32)})
+        return iterate(runner)
+
+    return run
+
+
+@pytest.fixture(scope="module")
+def constraint_runs():
+    # The constraint task: the tiny untrained policies violate on about a third of their steps, so the cost
+    # critic and cost advantages are exercised in every run. A limit of 1 (every step in violation) is above
+    # anything reachable: from 0 the multiplier stays 0; from 5 it decreases by lambda_lr (1 - J_c) an iteration.
+    env, params = make_from_config(load_config(CONFIG, CHEAP))
+    plain = _runner(ppo.make_learner(TINY, env), params)()
+    run = _runner(make_learner({**TINY, "cost_limit": 1.0, "lambda_lr": 0.5}, env), params)
+    return plain, run(), run(multiplier=5.0)
+
+
+def test_with_the_multiplier_at_zero_learning_is_exactly_ppo(constraint_runs):
+    (plain_runner, plain_metrics), (runner, metrics), _ = constraint_runs
+    assert float(jnp.max(metrics["cost_estimate"])) > 0.05  # costs were incurred, the cost critic trained
+    np.testing.assert_array_equal(metrics["lagrange_multiplier"], 0.0)
+    for a, b in zip(jax.tree.leaves(plain_runner.params), jax.tree.leaves(runner.params), strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(plain_metrics["episode_return"], metrics["episode_return"])
+    assert np.all(np.isfinite(metrics["cost_value_loss"]))
+
+
+def test_an_active_multiplier_follows_the_update_and_changes_learning(constraint_runs):
+    (plain_runner, _), _, (runner, metrics) = constraint_runs
+    lam, cost = np.asarray(metrics["lagrange_multiplier"]), np.asarray(metrics["cost_estimate"])
+    # lambda_k = max(0, lambda_{k-1} + 0.5 (J_c,k - 1)) from 5 (the update comes before each iteration's SGD epochs).
+    expected = 5.0 + np.cumsum(0.5 * (cost - 1.0))
+    np.testing.assert_allclose(lam, expected, rtol=1e-5)
+    assert np.all(lam > 0)
+    actor_plain = jax.tree.leaves(plain_runner.params["actor"])
+    actor = jax.tree.leaves(runner.params["actor"])
+    assert max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(actor_plain, actor, strict=True)) > 1e-6
