@@ -148,7 +148,8 @@ def _prior_explorer(env, prior_params, opts: Options):
     from scg_algorithms.lqr import make_lqr
 
     low, high = (np.asarray(b, dtype=float) for b in env.input_bounds(prior_params.physics))
-    return data.exploring(make_lqr(env, prior_params, {"mode": "goal"}), opts.exploration_std * (high - low))
+    # LQR about the goal for stabilization, about each step's reference for tracking (the data must cover the path).
+    return data.exploring(make_lqr(env, prior_params, {"mode": "auto"}), opts.exploration_std * (high - low))
 
 
 def learn(env, params, prior_params, options=None, progress: Callable[[dict], None] | None = None) -> LearningResult:
