@@ -6,8 +6,9 @@ constraints are tightened at every stage by the margins of ``model.PlanUncertain
 along the warm-start plan under the prior's LQR gain, at chance level ``prob`` (Hewing et al. 2020).
 
 ``learn`` is the original suite's learning loop on the batched JAX environments: round 0 collects episodes of the
-prior's LQR with exploration noise (all copies at once); every round fits the GP to all transitions so far,
-evaluates the resulting GP-MPC with the common harness, and collects the next round's episodes with it.
+prior's LQR (about the goal, or about the reference on tracking tasks) with exploration noise (all copies at once);
+every round fits the GP to all transitions so far, evaluates the resulting GP-MPC with the common harness, and
+collects the next round's episodes with it.
 """
 
 from __future__ import annotations
@@ -148,7 +149,13 @@ def _prior_explorer(env, prior_params, opts: Options):
     from scg_algorithms.lqr import make_lqr
 
     low, high = (np.asarray(b, dtype=float) for b in env.input_bounds(prior_params.physics))
-    return data.exploring(make_lqr(env, prior_params, {"mode": "goal"}), opts.exploration_std * (high - low))
+    # LQR about the goal for stabilization, about each step's reference for tracking (the data must cover the path).
+    return data.exploring(make_lqr(env, prior_params, {"mode": "auto"}), opts.exploration_std * (high - low))
+
+
+def evaluation_key(seed: int):
+    """The key of the episodes ``learn`` evaluates every round on (the same ones each round), for comparisons."""
+    return jax.random.fold_in(jax.random.key(seed), 10_000)
 
 
 def learn(env, params, prior_params, options=None, progress: Callable[[dict], None] | None = None) -> LearningResult:
@@ -162,7 +169,7 @@ def learn(env, params, prior_params, options=None, progress: Callable[[dict], No
     opts = parse_options(Options, options, PATH)
     key = jax.random.key(opts.seed)
     fd_prior = env.symbolic_model(prior_params, discretization="rk4").fd
-    eval_key = jax.random.fold_in(key, 10_000)  # the same evaluation episodes every round
+    eval_key = evaluation_key(opts.seed)  # the same evaluation episodes every round
     inputs, targets = np.zeros((0, env.nx + env.nu)), np.zeros((0, env.nx))
     history, posterior = [], None
     controller = make_gp_mpc(env, prior_params, opts, None)
