@@ -24,7 +24,10 @@ def make_env(episode_len_sec: float = 5.0):
         {"type": "bounded", "on": "state", "active_dims": [0], "low": [-POSITION_BOUND], "high": [POSITION_BOUND]}
     ]
     return scg_jax.make(
-        "cartpole", ctrl_freq=CTRL_FREQ, physics_freq=PHYSICS_FREQ, episode_len_sec=episode_len_sec,
+        "cartpole",
+        ctrl_freq=CTRL_FREQ,
+        physics_freq=PHYSICS_FREQ,
+        episode_len_sec=episode_len_sec,
         constraints=constraints,
     )
 

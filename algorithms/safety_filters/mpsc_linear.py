@@ -28,10 +28,11 @@ Offline (host, numpy float64):
 Online, per copy (observation ``x``, proposed input ``u_L``), the condensed QP of ``scg_algorithms.mpc.qp``
 (pre-stabilised inputs ``u_j = u_eq - K (x_j - x_goal) + v_j``, states eliminated, rows scaled to unit norm)::
 
-    min_v  1/2 |u_0 - u_L|^2 + 1/2 regularization |v|^2
+    min_v  1/2 |u_0 - u_L|^2 + 1/2 regularization |v_{1:}|^2
     s.t.   x_0 = x,  x_{j+1} = Ad x_j + Bd u_j + c,  rows(x_{j+1}, u_j) <= b - margin_j   (j = 0..H-1)
 
-``regularization`` (default 1e-4) makes the Hessian definite (the one-step cost alone is singular in ``v_1..``).
+``regularization`` (default 1e-4) makes the Hessian definite (the one-step cost alone is singular in ``v_1..``); it
+leaves ``v_0`` alone, so it does not bias the certified input.
 With ``x_0 = x`` the tube starts at zero error, so the constant RPI margin is conservative at early stages (the
 design choice "(a)" of the research notes: the original's tube-initial-state freedom is dropped so the problem
 stays a QP).
@@ -55,7 +56,6 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, ClassVar, NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -73,6 +73,7 @@ CASADI_PATH = "safety_filters.linear_mpsc_casadi"
 SOLVERS = ("admm", "qpax")
 TIGHTENINGS = ("rpi", "reachable", "none")
 CASADI_SOLVERS = ("qpoases", "osqp")
+QPAX_OBJECTIVE_SCALE = 1e3  # the objective's factor in the qpax solve (see certify)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,7 +100,7 @@ class Options:
     sdp_solver: str = option("clarabel", "conic solver of the invariant-set program (cvxpy)", choices=tight.SDP_SOLVERS)
     error_quantile: float = option(1.0, "quantile of |w - mean| bounding the error per dimension (reachable)")
     constraint_margin: float = option(0.0, "extra margin on every row that involves the state (row units)")
-    regularization: float = option(1e-4, "weight of 1/2 |v|^2, makes the QP strictly convex")
+    regularization: float = option(1e-4, "weight of 1/2 |v_1..v_H-1|^2, makes the QP strictly convex")
     solver: str = option("admm", "QP solver: shared-factorisation ADMM or qpax interior point", choices=SOLVERS)
     admm_iterations: int = option(500, "ADMM iterations per solve (fixed)")
     admm_rho: float = option(0.1, "ADMM step size rho")
@@ -182,9 +183,7 @@ def build_problem(env, prior_params, options=None, plant_params=None, path: str 
         K, _ = discrete_lqr_gain(Ad[0], Bd[0], np.diag(q), np.diag(r))
     except ValueError as error:
         raise ValueError(f"{path}.q_lqr: the ancillary LQR has no stabilising solution ({error})") from None
-    affine = qp_lib.AffineModel(
-        Ad=Ad, Bd=Bd, c=c, x_bar=x_bar[None], u_bar=u_bar, K=K[None], P=np.zeros((1, nx, nx))
-    )
+    affine = qp_lib.AffineModel(Ad=Ad, Bd=Bd, c=c, x_bar=x_bar[None], u_bar=u_bar, K=K[None], P=np.zeros((1, nx, nx)))
     rows, _, _, u_low, u_high = _constraint_rows(env, prior_params, True)
     if not np.any(rows.soft):
         raise ValueError(
@@ -278,7 +277,8 @@ def qp_data(problem: Problem) -> dict:
     nz = qp.num_decisions
     u0_map = qp.u0_map[0]
     U0z, U0x, u0c = u0_map[:, :nz], u0_map[:, nz : nz + nx], u0_map[:, nz + nx :] @ theta_rest
-    hess = U0z.T @ U0z + opts.regularization * np.eye(nz)
+    # The regulariser leaves v_0 alone, so a proposed input that starts a feasible plan is the exact optimum.
+    hess = U0z.T @ U0z + opts.regularization * np.diag(np.r_[np.zeros(nu), np.ones(nz - nu)])
     return {
         "hess": hess,
         "G": qp.G[0],
@@ -365,9 +365,11 @@ def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> JaxF
             )
             z, y, violation = sol.z, sol.y, sol.violation
         else:
+            # Scaled up: qpax floors its duals at sqrt(eps), which shifts z by about hess^-1 G^T sqrt(eps); with
+            # the regulariser's 1e-4 eigenvalues that is 1e-4 N unscaled (scg_algorithms.mpc.qp explains the floor).
             sol = qp_lib.solve_qp(
-                params.hess,
-                q,
+                QPAX_OBJECTIVE_SCALE * params.hess,
+                QPAX_OBJECTIVE_SCALE * q,
                 params.G,
                 h,
                 max_iter=opts.qpax_iterations,
@@ -399,7 +401,7 @@ class LinearMPSCCasadi:
 
     Formulated independently of the condensed QP: the inputs ``U`` (nu, H) are the variables, the states CasADi
     expressions of them, the rows and their margins imposed per stage, the cost ``1/2 |u_0 - u_L|^2 + 1/2 reg
-    sum_j |u_j - u_eq + K (x_j - x_goal)|^2`` (the JAX filter's ``v``). ``certify`` applies the same fallback.
+    sum_{j>=1} |u_j - u_eq + K (x_j - x_goal)|^2`` (the JAX filter's ``v``). ``certify`` applies the same fallback.
     """
 
     name: str
@@ -475,7 +477,7 @@ def make_linear_mpsc_casadi(env, prior_params, options=None, plant_params=None) 
         X.append(A @ X[j] + B @ U[:, j] + c)
     V = cs.horzcat(*V)
     du = U[:, 0] - u_l
-    opti.minimize(0.5 * cs.dot(du, du) + 0.5 * opts.regularization * cs.sumsqr(V))
+    opti.minimize(0.5 * cs.dot(du, du) + 0.5 * opts.regularization * cs.sumsqr(V[:, 1:]))
     Ax, Au = cs.DM(rows.Ax), cs.DM(rows.Au)
     for j in range(H):
         opti.subject_to(Ax @ X[j + 1] + Au @ U[:, j] <= cs.DM(rows.b - problem.margins[j]))

@@ -57,7 +57,9 @@ def sample_transitions(env, plant_params, count: int, seed: int, half_width=None
         half = np.asarray(half_width, dtype=np.float64).reshape(nx)
         low, high = goal - half, goal + half
     x = rng.uniform(low, high, (count, nx))
-    u_low, u_high = (np.asarray(b, dtype=np.float64).reshape(env.nu) for b in env.system.input_bounds(plant_params.physics))
+    u_low, u_high = (
+        np.asarray(b, dtype=np.float64).reshape(env.nu) for b in env.system.input_bounds(plant_params.physics)
+    )
     u = rng.uniform(u_low, u_high, (count, env.nu))
     fd = env.symbolic_model(plant_params).fd
     x_next = np.asarray(fd.map(count)(x.T, u.T), dtype=np.float64).T
