@@ -1,6 +1,8 @@
 """Model predictive safety filters: the batched linear MPSC against its CasADi reference, closed-loop safety on the
 cart-pole (linear batched, nonlinear single episode) and the errors for bad input."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -8,6 +10,7 @@ import pytest
 
 import scg_jax
 from scg_algorithms.safety_filters import mpsc_experiment as E
+from scg_algorithms.safety_filters import mpsc_tightening as tight
 from scg_algorithms.safety_filters.base import SafetyFilter
 from scg_algorithms.safety_filters.mpsc_linear import make_linear_mpsc, make_linear_mpsc_casadi
 from scg_algorithms.safety_filters.mpsc_nonlinear import make_nonlinear_mpsc
@@ -42,9 +45,27 @@ def _states(count, seed):
     return x, u
 
 
-def _certify_batch(f, x, u):
-    state = jax.vmap(f.reset)(jnp.arange(x.shape[0]))
-    return jax.jit(jax.vmap(f.certify, in_axes=(0, 0, None, 0)))(x, u, f.params, state)
+@functools.cache
+def _batched(f):
+    """One jitted, vmapped ``certify`` per filter, so every test of a batch of 24 reuses its compilation."""
+    return jax.jit(jax.vmap(f.certify, in_axes=(0, 0, None, 0)))
+
+
+def _certify_batch(f, x, u, state=None):
+    if state is None:
+        state = jax.vmap(f.reset)(jnp.arange(x.shape[0]))
+    return _batched(f)(x, u, f.params, state)
+
+
+def _plan_is_safe(problem, x, u_l):
+    """Whether ``u_l`` followed by the ancillary LQR keeps the nominal model inside the tightened rows."""
+    affine, rows = problem.affine, problem.rows
+    for j in range(problem.horizon):
+        u = u_l if j == 0 else problem.u_bar - problem.K @ (x - problem.x_bar)
+        x = affine.Ad[0] @ x + affine.Bd[0] @ u + affine.c[0]
+        if np.any(rows.Ax @ x + rows.Au @ u > rows.b - problem.margins[j] - 1e-6):
+            return False
+    return True
 
 
 def test_batched_qp_equals_casadi_reference(x64_filters, casadi_filter):
@@ -62,6 +83,66 @@ def test_batched_qp_equals_casadi_reference(x64_filters, casadi_filter):
     admm_ok = np.asarray(info_admm.feasible)
     assert not np.any(admm_ok & ~ok) and admm_ok.sum() >= 0.6 * ok.sum()
     np.testing.assert_allclose(np.asarray(u_admm)[admm_ok], u_ref[admm_ok], atol=1e-4)
+
+
+def test_safe_input_passes_unchanged(x64_filters):
+    """Where the proposed input followed by the ancillary LQR is a safe plan, the QP's optimum is the proposal
+    (cost 0), so the correction is the solver's error: < 1e-6 N with qpax in float64, < 1e-4 N with the ADMM."""
+    problem = x64_filters[0].info["problem"]
+    rng = np.random.default_rng(2)
+    x = rng.uniform([-0.3, -0.3, -0.05, -0.2], [0.3, 0.3, 0.05, 0.2], (24, 4))
+    u = rng.uniform(-10.0, 10.0, (24, 1))
+    x[-4:], u[-4:] = [0.45, 1.0, 0.0, 0.0], 10.0  # full push outwards at the bound: must be changed
+    safe = np.array([_plan_is_safe(problem, xi, ui) for xi, ui in zip(x, u, strict=True)])
+    assert 6 <= safe.sum() <= 20 and not np.any(safe[-4:])
+    with jax.enable_x64(True):
+        for f, tolerance in zip(x64_filters, (1e-6, 1e-4), strict=True):
+            _, _, info = _certify_batch(f, jnp.asarray(x), jnp.asarray(u))
+            assert np.all(np.asarray(info.feasible)[safe])
+            correction = np.abs(np.asarray(info.correction))
+            assert correction[safe].max() < tolerance, (f.info["solver"], correction[safe].max())
+            assert correction[-4:].min() > 1.0  # the pushes were changed
+
+
+def test_fallback_continues_the_previous_plan(x64_filters):
+    """After a feasible step, an infeasible state is answered with the previous plan's next decision and the tube
+    feedback, ``u_eq - K (x - x_goal) + v_prev[kinf]``, for kinf = 1, 2."""
+    for f in x64_filters:
+        problem = f.info["problem"]
+        x_ok, u_ok = _states(24, 3)
+        x_ok[:] = [0.0, 0.3, 0.0, 0.0]
+        x_bad = np.tile([0.56, 2.0, 0.0, 0.0], (24, 1))  # outside the bound and moving away: no plan exists
+        with jax.enable_x64(True):
+            _, state, info = _certify_batch(f, jnp.asarray(x_ok), jnp.asarray(u_ok))
+            assert np.all(np.asarray(info.feasible)) and np.all(np.asarray(state.kinf) == 0)
+            for k in (1, 2):
+                u, state, info = _certify_batch(f, jnp.asarray(x_bad), jnp.asarray(u_ok), state)
+                assert not np.any(np.asarray(info.feasible)) and np.all(np.asarray(state.kinf) == k)
+                feedback = problem.u_bar - (x_bad - problem.x_bar) @ problem.K.T
+                expected = np.clip(feedback + np.asarray(state.v_plan)[:, k], -10.0, 10.0)
+                np.testing.assert_allclose(np.asarray(u), expected, atol=1e-9)
+
+
+def test_invariant_ellipsoid_contains_its_successors(env):
+    """The SDP's ellipsoid (cvxpy + Clarabel): boundary points pushed through the closed loop plus any sampled
+    error land inside, and the position row's margin is the ellipsoid's half-extent along the position."""
+    problem = make_linear_mpsc(env, env.default_params, {"tightening": "none", "horizon": 5}).info["problem"]
+    Ad, Bd, c = problem.affine.Ad[0], problem.affine.Bd[0], problem.affine.c[0]
+    A = Ad - Bd @ problem.K
+    x, u, x_next = tight.sample_transitions(env, env.default_params, 40, 3, E.SAMPLE_HALF_WIDTH)
+    w = x_next - (x @ Ad.T + u @ Bd.T + c)
+    P = tight.rpi_ellipsoid(A, w, 0.95)
+    rng = np.random.default_rng(0)
+    directions = rng.normal(size=(500, 4))
+    L = np.linalg.cholesky(np.linalg.inv(P))
+    e = (directions / np.linalg.norm(directions, axis=1, keepdims=True)) @ L.T  # e^T P e = 1
+    successors = (e @ A.T)[:, None, :] + w[None, :, :]
+    values = np.einsum("abi,ij,abj->ab", successors, P, successors)
+    assert values.max() <= 1.0 + 1e-6
+    assert values.max() > 0.5  # not trivially small: the ellipsoid is not much larger than it must be
+    margins = tight.ellipsoid_tightening(problem.rows.Ax, problem.rows.Au, problem.K, P)
+    position_row = int(np.flatnonzero(problem.rows.Ax[:, 0] > 0)[0])
+    np.testing.assert_allclose(margins[position_row], np.sqrt(np.linalg.inv(P)[0, 0]), rtol=1e-12)
 
 
 def test_linear_mpsc_keeps_the_cart_inside(env):

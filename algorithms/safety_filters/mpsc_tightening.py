@@ -83,11 +83,11 @@ def rpi_ellipsoid(A_cl, w, tau: float, solver: str = "clarabel", path: str = "ta
     A_cl = np.asarray(A_cl, dtype=np.float64)
     w = np.asarray(w, dtype=np.float64)
     nx = A_cl.shape[0]
-    # Scale the coordinates so the samples have unit spread per dimension: the errors span several decades (m vs
-    # rad/s), which the conic solvers handle poorly unscaled. P in original units is S^-1 P_s S^-1.
-    scale = np.maximum(np.abs(w).max(axis=0), 1e-9)
-    S_inv = np.diag(1.0 / scale)
-    A_s = S_inv @ A_cl @ np.diag(scale)
+    # One scale for every coordinate (the largest error): the conic solvers want the data near 1. A scale per
+    # coordinate (m vs rad/s errors differ by 300x on the cart-pole) left Clarabel "optimal_inaccurate" with an
+    # indefinite P; the uniform one solves to "optimal". P in original units is P_s / scale^2.
+    scale = max(float(np.abs(w).max()), 1e-12)
+    A_s = A_cl
     w_s = w / scale
     P = cp.Variable((nx, nx), symmetric=True)
     constraints = [P >> 1e-9 * np.eye(nx)]
@@ -100,14 +100,19 @@ def rpi_ellipsoid(A_cl, w, tau: float, solver: str = "clarabel", path: str = "ta
         problem.solve(solver=cp.CLARABEL if solver == "clarabel" else cp.SCS)
     except cp.error.SolverError as error:
         raise ValueError(f"{path}: the invariant-set program failed with {solver} ({error})") from None
-    if problem.status not in ("optimal", "optimal_inaccurate") or P.value is None:
+    if problem.status not in ("optimal", "optimal_inaccurate") or P.value is None:  # infeasible or unbounded
         raise ValueError(
             f"{path}: no invariant ellipsoid of the model error exists for tau={tau} (solver status "
             f"{problem.status!r}); the errors are too large for the ancillary feedback: raise tau towards 1, "
             "sample a smaller state box or use a better prior"
         )
     P_s = 0.5 * (P.value + P.value.T)
-    return S_inv @ P_s @ S_inv
+    if problem.status != "optimal" or np.linalg.eigvalsh(P_s).min() <= 0:
+        raise ValueError(
+            f"{path}: the invariant-set program was solved inaccurately by {solver} (status {problem.status!r}); "
+            "try the other sdp_solver, fewer samples or another tau"
+        )
+    return P_s / scale**2
 
 
 def _tube_parts(Ax, Au, K) -> tuple[np.ndarray, np.ndarray]:
