@@ -1,5 +1,7 @@
 """Model predictive safety filters: calls per second of the batched linear MPSC (shared-factorisation ADMM, qpax) at
-1, 1,024 and 16,384 copies, and the CasADi filters' time per call (linear qpOASES, nonlinear IPOPT).
+1, 1,024 and 16,384 copies, the CasADi filters' time per call (linear qpOASES, nonlinear IPOPT), and the closed-loop
+acceptance experiment at scale (``mpsc_experiment``: episodes with any violation, unfiltered vs filtered, true model
+and 150% prior).
 
 Each batch size is timed on random cart-pole states after one compile call; 16,384 copies runs only while the
 time cap allows (``--cap-s``). Writes ``docs/benchmarks/mpsc.md``. Run: ``python benchmarks/mpsc.py``.
@@ -22,6 +24,7 @@ from machine import run_record, write_markdown_table  # noqa: E402
 from scg_algorithms.safety_filters import mpsc_experiment as E  # noqa: E402
 from scg_algorithms.safety_filters.mpsc_linear import make_linear_mpsc, make_linear_mpsc_casadi  # noqa: E402
 from scg_algorithms.safety_filters.mpsc_nonlinear import make_nonlinear_mpsc  # noqa: E402
+from scg_jax.env import prior_params  # noqa: E402
 
 OPTIONS = {"n_samples": 300, "sample_half_width": list(E.SAMPLE_HALF_WIDTH)}
 
@@ -52,10 +55,50 @@ def time_host(f, count=20):
     return (time.perf_counter() - tick) / count
 
 
+def closed_loop_table(episodes: int) -> str:
+    """The acceptance experiment as a Markdown table (one row per variant)."""
+    env = E.make_env()
+    params = env.default_params
+    controller = E.setpoint_lqr(env, params)
+    key = jax.random.PRNGKey(0)
+    prior = prior_params(env, params, 1.5)
+    variants = [
+        ("unfiltered", None, None),
+        ("linear_mpsc, true model", params, OPTIONS),
+        ("linear_mpsc, true model, tightening none", params, {**OPTIONS, "tightening": "none"}),
+        ("linear_mpsc, 150% prior, reachable tightening", prior, OPTIONS),
+        ("linear_mpsc, 150% prior, tightening none", prior, {**OPTIONS, "tightening": "none"}),
+        (
+            "linear_mpsc, 150% prior, none + 0.03 m margin",
+            prior,
+            {**OPTIONS, "tightening": "none", "constraint_margin": 0.03},
+        ),
+    ]
+    lines = [
+        f"Closed loop ({episodes} episodes of {env.num_steps} steps, LQR towards x = {E.SETPOINT} m, bound "
+        f"|x| <= {E.POSITION_BOUND} m):",
+        "",
+        "| variant | episodes with a violation | violating steps | feasible steps | max x (m) |",
+        "|---|---|---|---|---|",
+    ]
+    for name, model, options in variants:
+        try:
+            f = None if model is None else make_linear_mpsc(env, model, options)
+        except ValueError as error:
+            lines.append(f"| {name} | build refused: {str(error).split(';')[0]} | | | |")
+            continue
+        r = E.closed_loop(env, params, controller, f, key, episodes)
+        row = (r["violating"].any(axis=1).mean(), r["violating"].mean(), r["feasible"].mean(), r["x"][:, :, 0].max())
+        lines.append(f"| {name} | {row[0]:.1%} | {row[1]:.2%} | {row[2]:.1%} | {row[3]:.3f} |")
+        print(lines[-1], flush=True)
+    return "\n".join(lines)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--cap-s", type=float, default=120.0, help="skip 16,384 copies once this much time is spent")
     parser.add_argument("--out", default="docs/benchmarks/mpsc.md")
+    parser.add_argument("--episodes", type=int, default=256, help="closed-loop episodes per variant")
     args = parser.parse_args(argv)
     record = run_record("mpsc")
     env = E.make_env()
@@ -88,6 +131,7 @@ def main(argv=None):
         "jit-ed, vmap-ed filter; empty at 16,384 where the time cap was reached. Last column: host filters, ms per "
         "call, one copy. The machine is shared: compare the rows of one run only."
     )
+    notes += "\n\n" + closed_loop_table(args.episodes)
     columns = ["filter", "calls/s, 1 copy", "calls/s, 1,024", "calls/s, 16,384", "ms/call (host)"]
     write_markdown_table(args.out, "Model predictive safety filters", record, columns, rows, notes)
 
