@@ -19,11 +19,12 @@ Offline (host, numpy float64):
 4. **Tightening** (``tightening``): ``"reachable"`` (default), per-stage margins of the linearised error tube
    ``e+ = (Ad - Bd K) e + w`` from the per-dimension error bound; ``"rpi"``, the original's robust invariant
    ellipsoid of the same error dynamics from a semidefinite program (cvxpy + Clarabel or SCS) and each row's
-   support-function margin at every stage; ``"none"``. Plus ``constraint_margin`` and ``feasibility_tol`` (the
-   solver's accepted violation) on every row that involves the state. Why ``reachable`` is the default: with ``x_0 = x`` the error starts at zero, and the ellipsoid must
-   contract by ``tau`` per step under a closed loop whose slowest mode is near 1 (cart-pole at 15 Hz: 0.947), so
-   it is long in the slow direction: on the cart-pole it is 10 s of Clarabel for 200 samples, infeasible at the
-   original's ``tau = 0.95``, and its margins at ``tau = 0.98`` exceed the reachable tube's at every stage.
+   support-function margin at every stage; ``"none"``. Plus ``constraint_margin`` on every row that involves the
+   state. Why ``reachable`` is the default: with
+   ``x_0 = x`` the error starts at zero, so the tube's margin at stage ``j`` holds only ``j`` steps of error, while
+   the invariant ellipsoid holds the error of every horizon at every stage; and the ellipsoid must contract by
+   ``tau`` per step under a closed loop whose slowest mode is near 1 (cart-pole at 15 Hz: 0.947), so it stretches
+   along that mode. The SDP also costs seconds of Clarabel per 40 samples (it has one LMI per sample).
 
 Online, per copy (observation ``x``, proposed input ``u_L``), the condensed QP of ``scg_algorithms.mpc.qp``
 (pre-stabilised inputs ``u_j = u_eq - K (x_j - x_goal) + v_j``, states eliminated, rows scaled to unit norm)::
@@ -103,7 +104,7 @@ class Options:
     regularization: float = option(1e-4, "weight of 1/2 |v_1..v_H-1|^2, makes the QP strictly convex")
     solver: str = option("admm", "QP solver: shared-factorisation ADMM or qpax interior point", choices=SOLVERS)
     admm_iterations: int = option(500, "ADMM iterations per solve (fixed)")
-    admm_rho: float = option(0.1, "ADMM step size rho (rows scaled to unit norm)")
+    admm_rho: float = option(0.1, "ADMM step size rho")
     admm_sigma: float = option(1e-6, "ADMM proximal weight sigma")
     admm_alpha: float = option(1.6, "ADMM relaxation alpha in (0, 2)")
     warm_start: bool = option(True, "start the ADMM from the previous step's iterate")
@@ -205,8 +206,7 @@ def build_problem(env, prior_params, options=None, plant_params=None, path: str 
         else:
             _, w_bar = tight.error_box(errors, opts.error_quantile)
             margins = tight.reachable_tightening(rows.Ax, rows.Au, K, A_cl, w_bar, H)
-    # feasibility_tol too: a solution accepted with rows violated by up to the tolerance still meets the real rows.
-    margins = margins + (opts.constraint_margin + opts.feasibility_tol) * rows.soft[None, :]
+    margins = margins + opts.constraint_margin * rows.soft[None, :]
     _check_margins(rows, margins, u_low, u_high, path)
     zero = np.zeros((nx, nx))
     qp = qp_lib.build_qp(affine, H, zero, np.zeros((nu, nu)), rows)
@@ -237,8 +237,7 @@ class LinearMPSCParams(NamedTuple):
     """The filter's arrays (a pytree; the harness passes it as ``filter_params``).
 
     ``h = Hx @ x + h0`` (p,) and ``u_0 = U0z @ z + U0x @ x + u0c`` give the QP of state ``x``; ``hess`` (nz, nz),
-    ``G`` (p, nz), ``M_inv`` (the ADMM's shared inverse, of the rows scaled by ``1 / row_norms``) are the same for
-    every copy. ``K`` (nu, nx),
+    ``G`` (p, nz) and ``M_inv`` (the ADMM's shared inverse) are the same for every copy. ``K`` (nu, nx),
     ``x_bar`` (nx,), ``u_bar`` (nu,): the ancillary feedback about the goal; ``u_low``, ``u_high``: the clip box, N.
     """
 
@@ -250,7 +249,6 @@ class LinearMPSCParams(NamedTuple):
     U0x: Any
     u0c: Any
     M_inv: Any
-    row_norms: Any
     K: Any
     x_bar: Any
     u_bar: Any
@@ -321,15 +319,11 @@ def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> JaxF
     opts = problem.options
     dtype = jnp.zeros(()).dtype
     data = qp_data(problem)
-    # The ADMM sees the rows scaled to unit norm in the decisions (the condensed rows of late stages are orders of
-    # magnitude longer than those of early ones, which slows its convergence); the violation is measured unscaled.
-    row_norms = np.maximum(np.linalg.norm(data["G"], axis=1), 1e-12)
-    M_inv = mpsc_admm.admm_inverse(data["hess"], data["G"] / row_norms[:, None], opts.admm_rho, opts.admm_sigma, dtype)
+    M_inv = mpsc_admm.admm_inverse(data["hess"], data["G"], opts.admm_rho, opts.admm_sigma, dtype)
     as_jax = lambda a: jnp.asarray(a, dtype)  # noqa: E731
     params = LinearMPSCParams(
         **{k: as_jax(v) for k, v in data.items()},
         M_inv=M_inv,
-        row_norms=as_jax(row_norms),
         K=as_jax(problem.K),
         x_bar=as_jax(problem.x_bar),
         u_bar=as_jax(problem.u_bar),
@@ -360,9 +354,9 @@ def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> JaxF
             y0 = state.y if opts.warm_start else None
             sol = mpsc_admm.admm_solve(
                 params.M_inv,
-                params.G / params.row_norms[:, None],
+                params.G,
                 q,
-                h / params.row_norms,
+                h,
                 iterations=opts.admm_iterations,
                 rho=opts.admm_rho,
                 sigma=opts.admm_sigma,
@@ -370,7 +364,7 @@ def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> JaxF
                 z0=z0,
                 y0=y0,
             )
-            z, y, violation = sol.z, sol.y, jnp.max(params.G @ sol.z - h)
+            z, y, violation = sol.z, sol.y, sol.violation
         else:
             # Scaled up: qpax floors its duals at sqrt(eps), which shifts z by about hess^-1 G^T sqrt(eps); with
             # the regulariser's 1e-4 eigenvalues that is 1e-4 N unscaled (scg_algorithms.mpc.qp explains the floor).

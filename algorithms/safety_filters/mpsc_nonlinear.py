@@ -135,8 +135,8 @@ class NonlinearMPSC:
             mean, w_bar = tight.error_box(self.errors, opts.error_quantile)
             if opts.model_bias:
                 self.bias = mean
-            else:
-                w_bar = np.abs(self.errors).max(axis=0) if opts.error_quantile == 1.0 else w_bar + np.abs(mean)
+            else:  # without the bias in the model, the bound must cover the mean error too
+                w_bar = w_bar + np.abs(mean)
             if opts.tightening == "reachable":
                 A_cl = lin.Ad - lin.Bd @ self.K
                 margins = tight.reachable_tightening(rows.Ax, rows.Au, self.K, A_cl, w_bar, H)
