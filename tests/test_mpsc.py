@@ -12,7 +12,7 @@ import scg_jax
 from scg_algorithms.safety_filters import mpsc_experiment as E
 from scg_algorithms.safety_filters import mpsc_tightening as tight
 from scg_algorithms.safety_filters.base import SafetyFilter
-from scg_algorithms.safety_filters.mpsc_linear import make_linear_mpsc, make_linear_mpsc_casadi
+from scg_algorithms.safety_filters.mpsc_linear import build_problem, make_linear_mpsc, make_linear_mpsc_casadi
 from scg_algorithms.safety_filters.mpsc_nonlinear import make_nonlinear_mpsc
 
 OPTIONS = {"n_samples": 200, "sample_half_width": list(E.SAMPLE_HALF_WIDTH)}
@@ -127,7 +127,7 @@ def test_fallback_continues_the_previous_plan(x64_filters):
 def test_invariant_ellipsoid_contains_its_successors(env):
     """The SDP's ellipsoid (cvxpy + Clarabel): boundary points pushed through the closed loop plus any sampled
     error land inside, and the position row's margin is the ellipsoid's half-extent along the position."""
-    problem = make_linear_mpsc(env, env.default_params, {"tightening": "none", "horizon": 5}).info["problem"]
+    problem = build_problem(env, env.default_params, {"tightening": "none", "horizon": 5})
     Ad, Bd, c = problem.affine.Ad[0], problem.affine.Bd[0], problem.affine.c[0]
     A = Ad - Bd @ problem.K
     x, u, x_next = tight.sample_transitions(env, env.default_params, 40, 3, E.SAMPLE_HALF_WIDTH)
