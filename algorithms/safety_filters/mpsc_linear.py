@@ -392,7 +392,7 @@ def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> JaxF
         return u, LinearMPSCState(v_plan, kinf.astype(jnp.int32), z_next, y_next), info
 
     info = {"problem": problem, "options": opts, "horizon": H, "solver": opts.solver}
-    return JaxFilter("linear_mpsc", system, params, reset, certify, info=info)
+    return JaxFilter(name="linear_mpsc", system=system, params=params, reset_fn=reset, certify_fn=certify, info=info)
 
 
 # --------------------------------------------------------------------------------------------- CasADi reference
