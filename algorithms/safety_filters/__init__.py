@@ -31,8 +31,8 @@ from scg_algorithms.safety_filters.base import (
 FILTERS = {
     "cbf": "scg_algorithms.safety_filters.cbf:make_cbf",
     "learned_cbf": "scg_algorithms.safety_filters.learned_cbf:make_learned_cbf",
-    # "linear_mpsc": "scg_algorithms.safety_filters.mpsc_linear:make_linear_mpsc",
-    # "nonlinear_mpsc": "scg_algorithms.safety_filters.mpsc_nonlinear:make_nonlinear_mpsc",
+    "linear_mpsc": "scg_algorithms.safety_filters.mpsc_linear:make_linear_mpsc",
+    "nonlinear_mpsc": "scg_algorithms.safety_filters.mpsc_nonlinear:make_nonlinear_mpsc",
 }
 # ------------------------------------------------------------------------------------------------------------
 

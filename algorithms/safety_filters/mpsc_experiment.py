@@ -1,0 +1,82 @@
+"""The MPSC acceptance experiment, shared by the tests and ``benchmarks/mpsc.py``: a cart-pole whose cart must stay
+in ``|x| <= POSITION_BOUND``, driven by an LQR towards a set-point beyond the bound (the uncertified controller),
+with and without a safety filter, over a batch of episodes in one jitted ``lax.scan``.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import scg_jax
+from scg_algorithms.lqr import discrete_lqr_gain
+
+POSITION_BOUND = 0.5  # m, the cart's constraint |x| <= 0.5
+SETPOINT = 1.0  # m, where the uncertified LQR drives the cart
+CTRL_FREQ, PHYSICS_FREQ = 15, 750  # Hz, the original's MPSC cart-pole example
+SAMPLE_HALF_WIDTH = (0.6, 1.0, 0.15, 1.0)  # m, m/s, rad, rad/s: the box of model-error samples around the goal
+
+
+def make_env(episode_len_sec: float = 5.0):
+    """The cart-pole of the experiment (stabilisation task, position box as a linear state constraint)."""
+    constraints = [
+        {"type": "bounded", "on": "state", "active_dims": [0], "low": [-POSITION_BOUND], "high": [POSITION_BOUND]}
+    ]
+    return scg_jax.make(
+        "cartpole",
+        ctrl_freq=CTRL_FREQ,
+        physics_freq=PHYSICS_FREQ,
+        episode_len_sec=episode_len_sec,
+        constraints=constraints,
+    )
+
+
+def setpoint_lqr(env, params, setpoint: float = SETPOINT):
+    """``u(x)``: the discrete LQR (Q = I, R = 0.1) of the model about the upright pole, towards the cart position
+    ``setpoint`` (m), clipped to the actuator limits (N). Pure JAX."""
+    model = env.symbolic_model(params)
+    lin = model.linearize(np.zeros(env.nx), np.zeros(env.nu))
+    K, _ = discrete_lqr_gain(lin.Ad, lin.Bd, np.eye(env.nx), 0.1 * np.eye(env.nu))
+    target = jnp.zeros(env.nx).at[0].set(setpoint)
+    low, high = env.input_bounds(params.physics)
+    K = jnp.asarray(K)
+    return lambda x: jnp.clip(-K @ (x[: env.nx] - target), low, high)
+
+
+def closed_loop(env, params, controller, safety_filter, key, num_episodes: int):
+    """Run ``num_episodes`` episodes of ``controller`` (``u(obs)``, JAX) certified by ``safety_filter`` (a JAX
+    filter, or ``None`` for none) in one jitted scan.
+
+    Returns:
+        dict of numpy arrays: ``violating`` (episodes, steps) bool, ``feasible`` (episodes, steps) bool,
+        ``correction`` (episodes, steps) |u - u_L| in N, ``x`` (episodes, steps + 1, nx).
+    """
+
+    def episode(key):
+        obs, state = env.reset(key, params)
+        fstate = safety_filter.reset(key) if safety_filter is not None else ()
+
+        def step(carry, _):
+            obs, state, fstate = carry
+            u_l = controller(obs)
+            if safety_filter is None:
+                u, feasible = u_l, jnp.ones((), bool)
+            else:
+                u, fstate, info = safety_filter.certify(obs, u_l, safety_filter.params, fstate)
+                feasible = info.feasible
+            out = env.step(state, u, params)
+            record = (out.info["constraint_violation"], feasible, jnp.abs(u - u_l).max(), out.state.x)
+            return (out.obs, out.state, fstate), record
+
+        _, (violating, feasible, correction, xs) = jax.lax.scan(step, (obs, state, fstate), None, env.num_steps)
+        return violating, feasible, correction, jnp.concatenate([state.x[None], xs])
+
+    run = jax.jit(jax.vmap(episode))
+    violating, feasible, correction, xs = run(jax.random.split(key, num_episodes))
+    return {
+        "violating": np.asarray(violating),
+        "feasible": np.asarray(feasible),
+        "correction": np.asarray(correction),
+        "x": np.asarray(xs),
+    }

@@ -1,0 +1,519 @@
+"""Linear model predictive safety certification (MPSC; Wabersich & Zeilinger 2018): the smallest change to the
+proposed input that keeps a plan back into safety, on the linearised prior with a tightened constraint set.
+
+Two filters share one ``Options`` (``safety_filters.linear_mpsc``; the CasADi variant reads the same fields):
+
+- ``make_linear_mpsc`` (``"linear_mpsc"``): a ``JaxFilter``; ``certify`` is pure JAX of one copy, so the harness
+  vmaps it over thousands of copies. Its QP is solved by an ADMM with one factorisation shared by the batch
+  (``solver="admm"``, ``mpsc_admm``) or by qpax's interior point (``solver="qpax"``, per-copy factorisation).
+- ``make_linear_mpsc_casadi``: the same QP for one copy on the host, formulated independently with
+  ``casadi.Opti("conic")`` and qpOASES (or OSQP): the reference the tests hold the batched filter to.
+
+Offline (host, numpy float64):
+
+1. **Model**: ``env.symbolic_model(prior_params)`` (``scg_algorithms.controller_setup``) linearised about the goal and
+   the prior's equilibrium input, ``x+ = Ad x + Bd u + c``.
+2. **Ancillary feedback** ``K``: the discrete LQR of ``(Ad, Bd)`` with ``q_lqr``, ``r_lqr`` (``u = u_eq - K dx``).
+3. **Model error**: ``n_samples`` transitions of the plant (``mpsc_tightening.sample_transitions``; the true
+   ``env.default_params`` unless ``plant_params`` is given), ``w = x+ - (Ad x + Bd u + c)``.
+4. **Tightening** (``tightening``): ``"reachable"`` (default), per-stage margins of the linearised error tube
+   ``e+ = (Ad - Bd K) e + w`` from the per-dimension error bound; ``"rpi"``, the original's robust invariant
+   ellipsoid of the same error dynamics from a semidefinite program (cvxpy + Clarabel or SCS) and each row's
+   support-function margin at every stage; ``"none"``. Plus ``constraint_margin`` on every row that involves the
+   state. Why ``reachable`` is the default: with
+   ``x_0 = x`` the error starts at zero, so the tube's margin at stage ``j`` holds only ``j`` steps of error, while
+   the invariant ellipsoid holds the error of every horizon at every stage; and the ellipsoid must contract by
+   ``tau`` per step under a closed loop whose slowest mode is near 1 (cart-pole at 15 Hz: 0.947), so it stretches
+   along that mode. The SDP also costs seconds of Clarabel per 40 samples (it has one LMI per sample).
+
+Online, per copy (observation ``x``, proposed input ``u_L``), the condensed QP of ``scg_algorithms.mpc.qp``
+(pre-stabilised inputs ``u_j = u_eq - K (x_j - x_goal) + v_j``, states eliminated, rows scaled to unit norm)::
+
+    min_v  1/2 |u_0 - u_L|^2 + 1/2 regularization |v_{1:}|^2
+    s.t.   x_0 = x,  x_{j+1} = Ad x_j + Bd u_j + c,  rows(x_{j+1}, u_j) <= b - margin_j   (j = 0..H-1)
+
+``regularization`` (default 1e-4) makes the Hessian definite (the one-step cost alone is singular in ``v_1..``); it
+leaves ``v_0`` alone, so it does not bias the certified input.
+With ``x_0 = x`` the tube starts at zero error, so the constant RPI margin is conservative at early stages (the
+design choice "(a)" of the research notes: the original's tube-initial-state freedom is dropped so the problem
+stays a QP).
+
+Fallback (the original's Algorithm 1): the filter state keeps the last feasible plan ``v`` and the steps since
+(``kinf``). When the QP is infeasible (ADMM: ``max(G z - h) > feasibility_tol`` after its iterations; qpax: its
+status), the input is ``u_eq - K (x - x_goal) + v_prev[kinf]`` (the previous plan continued with the tube
+feedback; in this parametrisation the tube controller ``v_j - K (x - z_j)`` reduces to that), and after ``H``
+such steps the plain LQR. The input is finally clipped to the actuator box. ``info.feasible`` is False on a
+fallback step, ``info.slack`` is 0 (hard constraints).
+
+Pass-through: where ``u_L`` is the first input of a feasible plan the QP's optimum is ``u_L`` itself (cost 0 up to
+the regulariser), so the correction is the solver's error: below 1e-6 N with qpax in float64 and at the ADMM's
+iteration tolerance otherwise (the tests measure both).
+
+Units: SI (m, rad, N); the filter's arrays in the default float dtype, built in float64.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, ClassVar, NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from scg_algorithms import controller_setup as setup
+from scg_algorithms.base import option, parse_options, positive, weight_diagonal
+from scg_algorithms.lqr import discrete_lqr_gain
+from scg_algorithms.mpc import qp as qp_lib
+from scg_algorithms.mpc.linear import _constraint_rows
+from scg_algorithms.safety_filters import mpsc_admm
+from scg_algorithms.safety_filters import mpsc_tightening as tight
+from scg_algorithms.safety_filters.base import FilterInfo, JaxFilter
+
+PATH = "safety_filters.linear_mpsc"
+CASADI_PATH = "safety_filters.linear_mpsc_casadi"
+SOLVERS = ("admm", "qpax")
+TIGHTENINGS = ("rpi", "reachable", "none")
+CASADI_SOLVERS = ("qpoases", "osqp")
+QPAX_OBJECTIVE_SCALE = 1e3  # the objective's factor in the qpax solve (see certify)
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """Options of the linear MPSC (``safety_filters.linear_mpsc``)."""
+
+    horizon: int = option(20, "prediction horizon H, control steps")
+    q_lqr: tuple | None = option(None, "diagonal state weight (nx,) of the ancillary LQR K; default ones")
+    r_lqr: tuple | None = option(None, "diagonal input weight (nu,) of the ancillary LQR K; default ones")
+    discretization: str = option(
+        "env", "model: the env's integrator and substeps, or one RK4 step per period", choices=setup.DISCRETIZATIONS
+    )
+    tightening: str = option(
+        "reachable",
+        "constraint tightening: robust invariant ellipsoid (SDP), per-stage reachable tube, or none",
+        choices=TIGHTENINGS,
+    )
+    n_samples: int = option(600, "plant transitions sampled for the model-error bound")
+    sample_seed: int = option(0, "PRNG seed of the samples")
+    sample_half_width: tuple | None = option(
+        None, "(nx,) half-widths of the box around the goal the sampled states fill; default: the env's reset draw"
+    )
+    tau: float = option(0.95, "S-procedure contraction of the invariant-ellipsoid program, in (0, 1)")
+    sdp_solver: str = option("clarabel", "conic solver of the invariant-set program (cvxpy)", choices=tight.SDP_SOLVERS)
+    error_quantile: float = option(1.0, "quantile of |w - mean| bounding the error per dimension (reachable)")
+    constraint_margin: float = option(0.0, "extra margin on every row that involves the state (row units)")
+    regularization: float = option(1e-4, "weight of 1/2 |v_1..v_H-1|^2, makes the QP strictly convex")
+    solver: str = option("admm", "QP solver: shared-factorisation ADMM or qpax interior point", choices=SOLVERS)
+    admm_iterations: int = option(500, "ADMM iterations per solve (fixed)")
+    admm_rho: float = option(0.1, "ADMM step size rho")
+    admm_sigma: float = option(1e-6, "ADMM proximal weight sigma")
+    admm_alpha: float = option(1.6, "ADMM relaxation alpha in (0, 2)")
+    warm_start: bool = option(True, "start the ADMM from the previous step's iterate")
+    qpax_iterations: int = option(40, "qpax interior-point iterations at most")
+    feasibility_tol: float = option(1e-3, "largest row violation (m, rad, N) of a solution still used")
+    casadi_solver: str = option("qpoases", "conic solver of the CasADi variant", choices=CASADI_SOLVERS)
+
+    def _check(self, path: str) -> None:
+        for name in ("horizon", "n_samples", "admm_iterations", "qpax_iterations"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{path}.{name}: must be a positive integer, got {getattr(self, name)!r}")
+        for name in ("admm_rho", "admm_sigma", "feasibility_tol"):
+            positive(f"{path}.{name}", getattr(self, name))
+        if not 0.0 < self.tau < 1.0:
+            raise ValueError(f"{path}.tau: must be in (0, 1), got {self.tau!r}")
+        if not 0.0 < self.admm_alpha < 2.0:
+            raise ValueError(f"{path}.admm_alpha: must be in (0, 2), got {self.admm_alpha!r}")
+        if not 0.0 < self.error_quantile <= 1.0:
+            raise ValueError(f"{path}.error_quantile: must be in (0, 1], got {self.error_quantile!r}")
+        for name in ("constraint_margin", "regularization"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
+
+
+# --------------------------------------------------------------------------------------------- host set-up
+@dataclasses.dataclass(frozen=True)
+class Problem:
+    """What both variants build on the host (numpy float64).
+
+    Attributes:
+        options: parsed ``Options``. system: the env's system name. nx, nu, horizon: sizes.
+        affine: ``qp_lib.AffineModel`` about the goal with the ancillary ``K``. K: (nu, nx). x_bar: (nx,) goal.
+        u_bar: (nu,) equilibrium input, N. rows: ``qp_lib.ConstraintRows`` (actuator limits and the env's linear
+        rows, merged). margins: (H, m) tightening of each row at each stage. u_low, u_high: (nu,) clip box, N.
+        errors: (n, nx) model-error samples (empty without tightening). P_rpi: (nx, nx) the invariant ellipsoid
+        (``tightening="rpi"``) or ``None``. qp: the condensed ``qp_lib.CondensedQP`` (its objective unused).
+    """
+
+    options: Options
+    system: str
+    nx: int
+    nu: int
+    horizon: int
+    affine: Any
+    K: np.ndarray
+    x_bar: np.ndarray
+    u_bar: np.ndarray
+    rows: Any
+    margins: np.ndarray
+    u_low: np.ndarray
+    u_high: np.ndarray
+    errors: np.ndarray
+    P_rpi: np.ndarray | None
+    qp: Any
+
+
+def build_problem(env, prior_params, options=None, plant_params=None, path: str = PATH) -> Problem:
+    """Parse ``options`` (errors name ``<path>.<field>``) and build the offline data (see the module docstring).
+
+    Args:
+        env: the environment. prior_params: the filter's model (``EnvParams``). options: ``Options`` mapping.
+        plant_params: the plant the model-error samples come from (default ``env.default_params``).
+    """
+    opts = parse_options(Options, options, path)
+    nx, nu, H = env.nx, env.nu, opts.horizon
+    q = weight_diagonal(f"{path}.q_lqr", opts.q_lqr, (1.0,) * nx, nx)
+    r = weight_diagonal(f"{path}.r_lqr", opts.r_lqr, (1.0,) * nu, nu)
+    if min(r) <= 0:
+        raise ValueError(f"{path}.r_lqr: the LQR input weight must be positive, got {list(r)}")
+    if opts.sample_half_width is not None and len(opts.sample_half_width) != nx:
+        raise ValueError(f"{path}.sample_half_width: expected {nx} values, got {len(opts.sample_half_width)}")
+    model = setup.prior_model(env, prior_params, opts.discretization)
+    x_bar = np.asarray(prior_params.goal, dtype=np.float64).reshape(nx)
+    u_bar = setup.equilibrium_input(env, prior_params)
+    Ad, Bd, c = setup.linearize_along(model, x_bar[None], u_bar)
+    try:
+        K, _ = discrete_lqr_gain(Ad[0], Bd[0], np.diag(q), np.diag(r))
+    except ValueError as error:
+        raise ValueError(f"{path}.q_lqr: the ancillary LQR has no stabilising solution ({error})") from None
+    affine = qp_lib.AffineModel(Ad=Ad, Bd=Bd, c=c, x_bar=x_bar[None], u_bar=u_bar, K=K[None], P=np.zeros((1, nx, nx)))
+    rows, _, _, u_low, u_high = _constraint_rows(env, prior_params, True)
+    if not np.any(rows.soft):
+        raise ValueError(
+            f"{path}: the env has no linear constraint on the state, so there is nothing to certify; make the env "
+            "with constraints (e.g. {'type': 'bounded', 'on': 'state', ...})"
+        )
+
+    A_cl = Ad[0] - Bd[0] @ K
+    errors = np.zeros((0, nx))
+    P_rpi = None
+    margins = np.zeros((H, rows.num_rows))
+    if opts.tightening != "none":
+        plant = env.default_params if plant_params is None else plant_params
+        x, u, x_next = tight.sample_transitions(env, plant, opts.n_samples, opts.sample_seed, opts.sample_half_width)
+        errors = x_next - (x @ Ad[0].T + u @ Bd[0].T + c[0])
+        if opts.tightening == "rpi":
+            P_rpi = tight.rpi_ellipsoid(A_cl, errors, opts.tau, opts.sdp_solver, f"{path}.tau")
+            margins = np.tile(tight.ellipsoid_tightening(rows.Ax, rows.Au, K, P_rpi), (H, 1))
+        else:
+            _, w_bar = tight.error_box(errors, opts.error_quantile)
+            margins = tight.reachable_tightening(rows.Ax, rows.Au, K, A_cl, w_bar, H)
+    margins = margins + opts.constraint_margin * rows.soft[None, :]
+    _check_margins(rows, margins, u_low, u_high, path)
+    zero = np.zeros((nx, nx))
+    qp = qp_lib.build_qp(affine, H, zero, np.zeros((nu, nu)), rows)
+    return Problem(
+        opts, env.system.name, nx, nu, H, affine, K, x_bar, u_bar, rows, margins, u_low, u_high, errors, P_rpi, qp
+    )
+
+
+def _check_margins(rows, margins, u_low, u_high, path: str) -> None:
+    """Raise when the tightening leaves an input row with no room (its margin exceeds the box it bounds)."""
+    for r in range(rows.num_rows):
+        if np.any(rows.Ax[r] != 0.0):
+            continue
+        nonzero = np.flatnonzero(rows.Au[r])
+        if nonzero.size != 1:
+            continue
+        i = nonzero[0]
+        if margins[:, r].max() >= 0.5 * (u_high[i] - u_low[i]):
+            raise ValueError(
+                f"{path}.tightening: the input margin {margins[:, r].max():.3g} N leaves no admissible input "
+                f"(limits [{u_low[i]:.3g}, {u_high[i]:.3g}] N); lower the model error (sample_half_width, a better "
+                "prior) or make the ancillary LQR gentler (larger r_lqr)"
+            )
+
+
+# --------------------------------------------------------------------------------------------- JAX filter
+class LinearMPSCParams(NamedTuple):
+    """The filter's arrays (a pytree; the harness passes it as ``filter_params``).
+
+    ``h = Hx @ x + h0`` (p,) and ``u_0 = U0z @ z + U0x @ x + u0c`` give the QP of state ``x``; ``hess`` (nz, nz),
+    ``G`` (p, nz) and ``M_inv`` (the ADMM's shared inverse) are the same for every copy. ``K`` (nu, nx),
+    ``x_bar`` (nx,), ``u_bar`` (nu,): the ancillary feedback about the goal; ``u_low``, ``u_high``: the clip box, N.
+    """
+
+    hess: Any
+    G: Any
+    Hx: Any
+    h0: Any
+    U0z: Any
+    U0x: Any
+    u0c: Any
+    M_inv: Any
+    K: Any
+    x_bar: Any
+    u_bar: Any
+    u_low: Any
+    u_high: Any
+
+
+class LinearMPSCState(NamedTuple):
+    """Per copy: ``v_plan`` (H, nu) the last feasible plan's decisions, ``kinf`` (int32) steps since it was made
+    (H or more: none left, plain LQR), ``z`` (nz,) and ``y`` (p,) the ADMM's last iterate (warm start)."""
+
+    v_plan: Any
+    kinf: Any
+    z: Any
+    y: Any
+
+
+def qp_data(problem: Problem) -> dict:
+    """The QP of ``problem`` in the reduced form of ``LinearMPSCParams`` (numpy float64, before the ADMM inverse)."""
+    qp, opts, nx, nu, H = problem.qp, problem.options, problem.nx, problem.nu, problem.horizon
+    m = problem.rows.num_rows
+    norms = np.linalg.norm(np.concatenate([problem.rows.Ax, problem.rows.Au], axis=1), axis=1)
+    h_map = qp.h_map[0].copy()
+    # Stage j's copy of row r sits at j * m + r (scaled to unit norm by build_qp): lower its bound by the margin.
+    h_map[:, -1] -= (problem.margins / norms[None, :]).reshape(H * m)
+    theta_rest = np.concatenate([np.tile(qp.c_table[0], H), np.tile(qp.w_table[0], H), [1.0]])
+    nz = qp.num_decisions
+    u0_map = qp.u0_map[0]
+    U0z, U0x, u0c = u0_map[:, :nz], u0_map[:, nz : nz + nx], u0_map[:, nz + nx :] @ theta_rest
+    # The regulariser leaves v_0 alone, so a proposed input that starts a feasible plan is the exact optimum.
+    hess = U0z.T @ U0z + opts.regularization * np.diag(np.r_[np.zeros(nu), np.ones(nz - nu)])
+    return {
+        "hess": hess,
+        "G": qp.G[0],
+        "Hx": h_map[:, :nx],
+        "h0": h_map[:, nx:] @ theta_rest,
+        "U0z": U0z,
+        "U0x": U0x,
+        "u0c": u0c,
+    }
+
+
+def qp_of(params: LinearMPSCParams, x, u_uncertified):
+    """``(q (nz,), h (p,))`` of the QP ``min 1/2 z^T hess z + q^T z  s.t.  G z <= h`` for state ``x`` and the
+    proposed input ``u_uncertified`` (pure JAX)."""
+    q = params.U0z.T @ (params.U0x @ x + params.u0c - u_uncertified)
+    h = params.Hx @ x + params.h0
+    return q, h
+
+
+def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> JaxFilter:
+    """Batched linear MPSC in JAX (see the module docstring).
+
+    Args:
+        env: the environment (with linear state constraints). prior_params: ``EnvParams`` of the filter's model
+            (its ``constraints`` are the constraint values). options: ``Options`` mapping
+            (``safety_filters.linear_mpsc``). plant_params: where the model-error samples come from (default
+            ``env.default_params``).
+
+    Returns:
+        A ``JaxFilter`` named ``"linear_mpsc"``; ``certify(obs, u_uncertified, params, state)`` returns the certified
+        input (nu,), N, ``LinearMPSCState`` and ``FilterInfo``. ``info`` holds the host ``problem``.
+
+    Raises:
+        ValueError: naming ``safety_filters.linear_mpsc.<field>`` for a bad option or an infeasible tightening.
+    """
+    problem = build_problem(env, prior_params, options, plant_params)
+    opts = problem.options
+    dtype = jnp.zeros(()).dtype
+    data = qp_data(problem)
+    M_inv = mpsc_admm.admm_inverse(data["hess"], data["G"], opts.admm_rho, opts.admm_sigma, dtype)
+    as_jax = lambda a: jnp.asarray(a, dtype)  # noqa: E731
+    params = LinearMPSCParams(
+        **{k: as_jax(v) for k, v in data.items()},
+        M_inv=M_inv,
+        K=as_jax(problem.K),
+        x_bar=as_jax(problem.x_bar),
+        u_bar=as_jax(problem.u_bar),
+        u_low=as_jax(problem.u_low),
+        u_high=as_jax(problem.u_high),
+    )
+    nx, nu, H = problem.nx, problem.nu, problem.horizon
+    nz, p = data["hess"].shape[0], data["G"].shape[0]
+    system = problem.system
+
+    def reset(key):
+        return LinearMPSCState(
+            jnp.zeros((H, nu), dtype), jnp.asarray(H, jnp.int32), jnp.zeros(nz, dtype), jnp.zeros(p, dtype)
+        )
+
+    def certify(obs, u_uncertified, params, state):
+        obs = jnp.asarray(obs)
+        u_uncertified = jnp.asarray(u_uncertified, dtype)
+        if obs.ndim != 1 or obs.shape[0] < nx or u_uncertified.shape != (nu,):
+            raise ValueError(
+                f"linear_mpsc: built for {system} (state of {nx} entries, input of {nu}); got an observation of "
+                f"shape {tuple(obs.shape)} and an input of shape {tuple(u_uncertified.shape)} (one copy)"
+            )
+        x = jnp.asarray(obs[:nx], dtype)
+        q, h = qp_of(params, x, u_uncertified)
+        if opts.solver == "admm":
+            z0 = state.z if opts.warm_start else None
+            y0 = state.y if opts.warm_start else None
+            sol = mpsc_admm.admm_solve(
+                params.M_inv,
+                params.G,
+                q,
+                h,
+                iterations=opts.admm_iterations,
+                rho=opts.admm_rho,
+                sigma=opts.admm_sigma,
+                alpha=opts.admm_alpha,
+                z0=z0,
+                y0=y0,
+            )
+            z, y, violation = sol.z, sol.y, sol.violation
+        else:
+            # Scaled up: qpax floors its duals at sqrt(eps), which shifts z by about hess^-1 G^T sqrt(eps); with
+            # the regulariser's 1e-4 eigenvalues that is 1e-4 N unscaled (scg_algorithms.mpc.qp explains the floor).
+            sol = qp_lib.solve_qp(
+                QPAX_OBJECTIVE_SCALE * params.hess,
+                QPAX_OBJECTIVE_SCALE * q,
+                params.G,
+                h,
+                max_iter=opts.qpax_iterations,
+                solver_tol=1e-10,
+                feasibility_tol=opts.feasibility_tol,
+            )
+            z, y, violation = sol.z, state.y, jnp.where(sol.status == qp_lib.STATUS_FAILED, jnp.inf, sol.violation)
+        u_qp = params.U0z @ z + params.U0x @ x + params.u0c
+        feasible = (violation <= opts.feasibility_tol) & jnp.all(jnp.isfinite(u_qp))
+        kinf = jnp.where(feasible, 0, jnp.minimum(state.kinf + 1, H))
+        v_plan = jnp.where(feasible, z[: H * nu].reshape(H, nu), state.v_plan)
+        v_backup = jnp.where(kinf < H, v_plan[jnp.minimum(kinf, H - 1)], 0.0)
+        u_backup = params.u_bar - params.K @ (x - params.x_bar) + v_backup
+        u = jnp.clip(jnp.where(feasible, u_qp, u_backup), params.u_low, params.u_high)
+        # A failed solve's iterate is a poor warm start: restart from zeros.
+        z_next = jnp.where(feasible, z, jnp.zeros_like(z))
+        y_next = jnp.where(feasible, y, jnp.zeros_like(y))
+        info = FilterInfo(feasible=feasible, slack=jnp.zeros((), dtype), correction=u - u_uncertified)
+        return u, LinearMPSCState(v_plan, kinf.astype(jnp.int32), z_next, y_next), info
+
+    info = {"problem": problem, "options": opts, "horizon": H, "solver": opts.solver}
+    return JaxFilter(name="linear_mpsc", system=system, params=params, reset_fn=reset, certify_fn=certify, info=info)
+
+
+# --------------------------------------------------------------------------------------------- CasADi reference
+@dataclasses.dataclass(frozen=True, eq=False)
+class LinearMPSCCasadi:
+    """The linear MPSC for one copy on the host (``is_jax = False``): ``casadi.Opti("conic")`` with qpOASES or OSQP.
+
+    Formulated independently of the condensed QP: the inputs ``U`` (nu, H) are the variables, the states CasADi
+    expressions of them, the rows and their margins imposed per stage, the cost ``1/2 |u_0 - u_L|^2 + 1/2 reg
+    sum_{j>=1} |u_j - u_eq + K (x_j - x_goal)|^2`` (the JAX filter's ``v``). ``certify`` applies the same fallback.
+    """
+
+    name: str
+    system: str
+    problem: Problem
+    opti: Any
+    variables: dict
+    parameters: dict
+    params: Any = None
+    is_jax: ClassVar[bool] = False
+
+    def reset(self, key):
+        return {"v_plan": np.zeros((self.problem.horizon, self.problem.nu)), "kinf": self.problem.horizon}
+
+    def solve(self, x, u_uncertified) -> tuple[np.ndarray, np.ndarray, bool]:
+        """``(u_0 (nu,), v (H, nu), success)`` of the QP for state ``x`` and proposed input ``u_uncertified``."""
+        opti, p = self.opti, self.parameters
+        opti.set_value(p["x0"], np.asarray(x, dtype=np.float64))
+        opti.set_value(p["u_l"], np.asarray(u_uncertified, dtype=np.float64))
+        try:
+            opti.solve()
+            success = bool(opti.stats()["success"])
+        except RuntimeError:
+            success = False
+        u0 = np.asarray(opti.debug.value(self.variables["U"][:, 0]), dtype=np.float64).reshape(-1)
+        V = np.asarray(opti.debug.value(self.variables["V"]), dtype=np.float64).reshape(self.problem.nu, -1).T
+        return u0, V, success and bool(np.all(np.isfinite(u0)))
+
+    def certify(self, x_or_obs, u_uncertified, filter_params, filter_state):
+        problem = self.problem
+        obs = np.asarray(x_or_obs, dtype=np.float64)
+        u_l = np.asarray(u_uncertified, dtype=np.float64).reshape(-1)
+        if obs.ndim != 1 or obs.shape[0] < problem.nx or u_l.shape != (problem.nu,):
+            raise ValueError(
+                f"linear_mpsc_casadi: built for {problem.system} (state of {problem.nx} entries, input of "
+                f"{problem.nu}); got an observation of shape {obs.shape} and an input of shape {u_l.shape}"
+            )
+        x = obs[: problem.nx]
+        u0, V, success = self.solve(x, u_l)
+        H = problem.horizon
+        if success:
+            state = {"v_plan": V, "kinf": 0}
+            u = u0
+        else:
+            kinf = min(filter_state["kinf"] + 1, H)
+            v = filter_state["v_plan"][kinf] if kinf < H else np.zeros(problem.nu)
+            state = {"v_plan": filter_state["v_plan"], "kinf": kinf}
+            u = problem.u_bar - problem.K @ (x - problem.x_bar) + v
+        u = np.clip(u, problem.u_low, problem.u_high)
+        return u, state, FilterInfo(feasible=success, slack=0.0, correction=u - u_l)
+
+
+def make_linear_mpsc_casadi(env, prior_params, options=None, plant_params=None) -> LinearMPSCCasadi:
+    """The linear MPSC for one copy on the host with CasADi (same ``Options`` and offline data as
+    ``make_linear_mpsc``; see ``LinearMPSCCasadi``)."""
+    import casadi as cs
+
+    problem = build_problem(env, prior_params, options, plant_params, CASADI_PATH)
+    opts = problem.options
+    nx, nu, H = problem.nx, problem.nu, problem.horizon
+    affine, rows = problem.affine, problem.rows
+    A, B, c = cs.DM(affine.Ad[0]), cs.DM(affine.Bd[0]), cs.DM(affine.c[0])
+    K, x_bar, u_bar = cs.DM(problem.K), cs.DM(problem.x_bar), cs.DM(problem.u_bar)
+
+    opti = cs.Opti("conic")
+    U = opti.variable(nu, H)
+    x0 = opti.parameter(nx)
+    u_l = opti.parameter(nu)
+    X = [x0]
+    V = []
+    for j in range(H):
+        V.append(U[:, j] - u_bar + K @ (X[j] - x_bar))
+        X.append(A @ X[j] + B @ U[:, j] + c)
+    V = cs.horzcat(*V)
+    du = U[:, 0] - u_l
+    opti.minimize(0.5 * cs.dot(du, du) + 0.5 * opts.regularization * cs.sumsqr(V[:, 1:]))
+    Ax, Au = cs.DM(rows.Ax), cs.DM(rows.Au)
+    for j in range(H):
+        opti.subject_to(Ax @ X[j + 1] + Au @ U[:, j] <= cs.DM(rows.b - problem.margins[j]))
+    if opts.casadi_solver == "qpoases":
+        solver_options = {"printLevel": "none", "error_on_fail": False, "expand": True}
+    else:
+        solver_options = {
+            "osqp": {"eps_abs": 1e-10, "eps_rel": 1e-10, "max_iter": 100000, "polish": True, "verbose": False},
+            "error_on_fail": False,
+            "expand": True,
+        }
+    opti.solver(opts.casadi_solver, solver_options)
+    return LinearMPSCCasadi(
+        name="linear_mpsc_casadi",
+        system=problem.system,
+        problem=problem,
+        opti=opti,
+        variables={"U": U, "V": V},
+        parameters={"x0": x0, "u_l": u_l},
+    )
+
+
+__all__ = [
+    "CASADI_SOLVERS",
+    "LinearMPSCCasadi",
+    "LinearMPSCParams",
+    "LinearMPSCState",
+    "Options",
+    "PATH",
+    "Problem",
+    "SOLVERS",
+    "TIGHTENINGS",
+    "build_problem",
+    "make_linear_mpsc",
+    "make_linear_mpsc_casadi",
+    "qp_data",
+    "qp_of",
+]

@@ -1,0 +1,237 @@
+"""Nonlinear model predictive safety certification: the MPSC problem on the nonlinear prior model, one copy on the
+host with CasADi ``Opti`` and IPOPT (``is_jax = False``).
+
+Problem per step (state ``x``, proposed input ``u_L``; ``fd`` the prior's discrete model,
+``env.symbolic_model(prior_params)`` with the env's integrator or one RK4 step, plus the mean model error ``bias``
+when ``model_bias``)::
+
+    min_{X, U}  1/2 |U_0 - u_L|^2 + 1/2 regularization sum_{j>=1} |U_j - u_eq + K (X_j - x_goal)|^2
+    s.t.        X_0 = x,  X_{j+1} = fd(X_j, U_j) + bias,
+                Ax X_{j+1} + Au U_j <= b - margin_j                      (j = 0..H-1)
+
+- Rows: the actuator limits and the env's linear constraints (``scg_algorithms.mpc.linear``'s rows; quadratic
+  constraints are not imposed).
+- Tightening per stage (``tightening="reachable"``): the linearised error tube under the ancillary LQR ``K`` about
+  the goal, from the per-dimension bound of the model error ``w = x+ - fd(x, u) - bias`` over ``n_samples`` plant
+  transitions (``mpsc_tightening``); the margin grows with the stage as the incremental-Lyapunov sequence
+  ``s_j`` of the fork's ``nl_mpsc`` does, without its offline LMI.
+- Warm start: the previous solution shifted by one step (the last input held); a cold start holds ``x``.
+- Fallback (Algorithm 1) when IPOPT fails: the previous plan continued with the tube feedback,
+  ``U_prev[kinf] - K (x - X_prev[kinf])``, and after ``H`` failed steps the LQR ``u_eq - K (x - x_goal)``; the input
+  is clipped to the actuator limits.
+
+``certify(x_or_obs, u_uncertified, filter_params, filter_state)`` takes numpy arrays of one copy and returns
+``(u (nu,), filter_state, FilterInfo)``; ``filter_params`` is unused (the problem is built in). Units SI.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from scg_algorithms import controller_setup as setup
+from scg_algorithms.base import option, parse_options, positive, weight_diagonal
+from scg_algorithms.lqr import discrete_lqr_gain
+from scg_algorithms.mpc.linear import _constraint_rows
+from scg_algorithms.safety_filters import mpsc_tightening as tight
+from scg_algorithms.safety_filters.base import FilterInfo
+
+PATH = "safety_filters.nonlinear_mpsc"
+TIGHTENINGS = ("reachable", "none")
+FEASIBILITY_TOL = 1e-6  # largest dynamics residual and row violation (state units, m, N) of a solution still used
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """Options of the nonlinear MPSC (``safety_filters.nonlinear_mpsc``)."""
+
+    horizon: int = option(20, "prediction horizon H, control steps")
+    q_lqr: tuple | None = option(None, "diagonal state weight (nx,) of the ancillary LQR K; default ones")
+    r_lqr: tuple | None = option(None, "diagonal input weight (nu,) of the ancillary LQR K; default ones")
+    discretization: str = option(
+        "rk4",
+        "model: one RK4 step per period (the fork's default), or the env's integrator and substeps",
+        choices=setup.DISCRETIZATIONS,
+    )
+    tightening: str = option("reachable", "per-stage tightening from the model error, or none", choices=TIGHTENINGS)
+    n_samples: int = option(600, "plant transitions sampled for the model-error bound")
+    sample_seed: int = option(0, "seed of the samples")
+    sample_half_width: tuple | None = option(
+        None, "(nx,) half-widths of the box around the goal the sampled states fill; default: the env's init box"
+    )
+    error_quantile: float = option(1.0, "quantile of |w - mean| bounding the error per dimension")
+    model_bias: bool = option(True, "add the mean sampled model error to the prediction model")
+    constraint_margin: float = option(0.0, "extra margin on every row that involves the state (row units)")
+    regularization: float = option(1e-4, "weight of the deviation of U_j from the tube feedback (j >= 1)")
+    max_iter: int = option(100, "IPOPT iterations at most")
+    tol: float = option(1e-8, "IPOPT tolerance")
+    warm_start: bool = option(True, "start IPOPT from the previous plan shifted by one step")
+
+    def _check(self, path: str) -> None:
+        for name in ("horizon", "n_samples", "max_iter"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{path}.{name}: must be a positive integer, got {getattr(self, name)!r}")
+        positive(f"{path}.tol", self.tol)
+        if not 0.0 < self.error_quantile <= 1.0:
+            raise ValueError(f"{path}.error_quantile: must be in (0, 1], got {self.error_quantile!r}")
+        for name in ("constraint_margin", "regularization"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
+
+
+class NonlinearMPSC:
+    """Host filter (build it with ``make_nonlinear_mpsc``).
+
+    Attributes:
+        name, is_jax, system, params: the filter protocol (``params`` is ``None``). options: parsed ``Options``.
+        K: (nu, nx) ancillary LQR. x_goal (nx,), u_eq (nu,): its linearisation point. u_low, u_high: clip box, N.
+        margins: (H, m) per-stage tightening of the rows. bias: (nx,) model bias added to the prediction.
+        errors: (n, nx) the model-error samples.
+    """
+
+    name = "nonlinear_mpsc"
+    is_jax = False
+    params = None
+
+    def __init__(self, env, prior_params, opts: Options, plant_params=None):
+        import casadi as cs
+
+        self.options = opts
+        self.system = env.system.name
+        nx, nu, H = self.nx, self.nu, self.horizon = env.nx, env.nu, opts.horizon
+        q = weight_diagonal(f"{PATH}.q_lqr", opts.q_lqr, (1.0,) * nx, nx)
+        r = weight_diagonal(f"{PATH}.r_lqr", opts.r_lqr, (1.0,) * nu, nu)
+        if min(r) <= 0:
+            raise ValueError(f"{PATH}.r_lqr: the LQR input weight must be positive, got {list(r)}")
+        if opts.sample_half_width is not None and len(opts.sample_half_width) != nx:
+            raise ValueError(f"{PATH}.sample_half_width: expected {nx} values, got {len(opts.sample_half_width)}")
+        model = setup.prior_model(env, prior_params, opts.discretization)
+        self.x_goal = np.asarray(prior_params.goal, dtype=np.float64).reshape(nx)
+        self.u_eq = setup.equilibrium_input(env, prior_params)
+        lin = model.linearize(self.x_goal, self.u_eq)
+        try:
+            self.K, _ = discrete_lqr_gain(lin.Ad, lin.Bd, np.diag(q), np.diag(r))
+        except ValueError as error:
+            raise ValueError(f"{PATH}.q_lqr: the ancillary LQR has no stabilising solution ({error})") from None
+        rows, _, _, self.u_low, self.u_high = _constraint_rows(env, prior_params, True)
+        if not np.any(rows.soft):
+            raise ValueError(
+                f"{PATH}: the env has no linear constraint on the state, so there is nothing to certify; make the "
+                "env with constraints (e.g. {'type': 'bounded', 'on': 'state', ...})"
+            )
+        self.rows = rows
+
+        self.bias = np.zeros(nx)
+        self.errors = np.zeros((0, nx))
+        margins = np.zeros((H, rows.num_rows))
+        if opts.tightening != "none" or opts.model_bias:
+            plant = env.default_params if plant_params is None else plant_params
+            x, u, x_next = tight.sample_transitions(
+                env, plant, opts.n_samples, opts.sample_seed, opts.sample_half_width
+            )
+            predicted = np.asarray(model.fd.map(x.shape[0])(x.T, u.T), dtype=np.float64).T
+            self.errors = x_next - predicted
+            mean, w_bar = tight.error_box(self.errors, opts.error_quantile)
+            if opts.model_bias:
+                self.bias = mean
+            else:  # without the bias in the model, the bound must cover the mean error too
+                w_bar = w_bar + np.abs(mean)
+            if opts.tightening == "reachable":
+                A_cl = lin.Ad - lin.Bd @ self.K
+                margins = tight.reachable_tightening(rows.Ax, rows.Au, self.K, A_cl, w_bar, H)
+        self.margins = margins + opts.constraint_margin * rows.soft[None, :]
+
+        opti = cs.Opti()
+        X = opti.variable(nx, H + 1)
+        U = opti.variable(nu, H)
+        x0 = opti.parameter(nx)
+        u_l = opti.parameter(nu)
+        K = cs.DM(self.K)
+        goal, u_eq, bias = cs.DM(self.x_goal), cs.DM(self.u_eq), cs.DM(self.bias)
+        opti.subject_to(X[:, 0] == x0)
+        cost = 0.5 * cs.sumsqr(U[:, 0] - u_l)
+        Ax, Au = cs.DM(rows.Ax), cs.DM(rows.Au)
+        for j in range(H):
+            opti.subject_to(X[:, j + 1] == model.fd(X[:, j], U[:, j]) + bias)
+            opti.subject_to(Ax @ X[:, j + 1] + Au @ U[:, j] <= cs.DM(rows.b - self.margins[j]))
+            if j >= 1:  # v_0 is left alone so that a safe proposal is the exact optimum
+                cost += 0.5 * opts.regularization * cs.sumsqr(U[:, j] - u_eq + K @ (X[:, j] - goal))
+        opti.minimize(cost)
+        ipopt = {"print_level": 0, "sb": "yes", "max_iter": opts.max_iter, "tol": opts.tol}
+        opti.solver("ipopt", {"print_time": False, "error_on_fail": False, "expand": True}, ipopt)
+        # One Function built once: Opti.solve() rebuilds its solver on every call (about 1 s on a small CPU).
+        self._solve = opti.to_function("nonlinear_mpsc", [x0, u_l, X, U], [X, U])
+        self._residual = cs.Function(
+            "residual",
+            [x0, X, U],
+            [
+                cs.vertcat(
+                    cs.vec(X[:, 0] - x0), *[cs.vec(X[:, j + 1] - model.fd(X[:, j], U[:, j]) - bias) for j in range(H)]
+                )
+            ],
+        ).expand()
+
+    def reset(self, key):
+        """No plan yet: ``kinf = H`` (a failure at the first step falls back to the LQR)."""
+        return {"x_plan": None, "u_plan": None, "kinf": self.horizon}
+
+    def solve(self, x, u_uncertified, x_guess=None, u_guess=None):
+        """``(X (H+1, nx), U (H, nu), success)`` of the NLP from ``x`` (nx,) for ``u_uncertified`` (nu,)."""
+        if x_guess is None:
+            x_guess, u_guess = np.tile(x, (self.horizon + 1, 1)), np.tile(self.u_eq, (self.horizon, 1))
+        X, U = self._solve(x, u_uncertified, x_guess.T, u_guess.T)
+        X = np.asarray(X, dtype=np.float64).reshape(self.nx, -1).T
+        U = np.asarray(U, dtype=np.float64).reshape(self.nu, -1).T
+        # Success from the solution itself (the Function hides IPOPT's status): finite, dynamics met, rows held.
+        if not (np.all(np.isfinite(X)) and np.all(np.isfinite(U))):
+            return X, U, False
+        dynamics = np.abs(np.asarray(self._residual(x, X.T, U.T))).max()
+        rows = X[1:] @ self.rows.Ax.T + U @ self.rows.Au.T - (self.rows.b - self.margins)
+        return X, U, bool(dynamics <= FEASIBILITY_TOL and rows.max() <= FEASIBILITY_TOL)
+
+    def certify(self, x_or_obs, u_uncertified, filter_params, filter_state):
+        obs = np.asarray(x_or_obs, dtype=np.float64)
+        u_l = np.asarray(u_uncertified, dtype=np.float64).reshape(-1)
+        if obs.ndim != 1 or obs.shape[0] < self.nx or u_l.shape != (self.nu,):
+            raise ValueError(
+                f"nonlinear_mpsc: built for {self.system} (state of {self.nx} entries, input of {self.nu}); got an "
+                f"observation of shape {obs.shape} and an input of shape {u_l.shape} (one copy)"
+            )
+        x = obs[: self.nx]
+        H = self.horizon
+        x_guess = u_guess = None
+        if self.options.warm_start and filter_state["x_plan"] is not None and filter_state["kinf"] == 0:
+            x_guess = np.concatenate([filter_state["x_plan"][1:], filter_state["x_plan"][-1:]])
+            x_guess[0] = x
+            u_guess = np.concatenate([filter_state["u_plan"][1:], filter_state["u_plan"][-1:]])
+        X, U, success = self.solve(x, u_l, x_guess, u_guess)
+        if success:
+            u = U[0]
+            state = {"x_plan": X, "u_plan": U, "kinf": 0}
+        else:
+            kinf = min(filter_state["kinf"] + 1, H)
+            if kinf < H and filter_state["x_plan"] is not None:
+                u = filter_state["u_plan"][kinf] - self.K @ (x - filter_state["x_plan"][kinf])
+            else:
+                u = self.u_eq - self.K @ (x - self.x_goal)
+            state = {**filter_state, "kinf": kinf}
+        u = np.clip(u, self.u_low, self.u_high)
+        return u, state, FilterInfo(feasible=success, slack=0.0, correction=u - u_l)
+
+
+def make_nonlinear_mpsc(env, prior_params, options=None, plant_params=None) -> NonlinearMPSC:
+    """The nonlinear MPSC (see the module docstring).
+
+    Args:
+        env: the environment (with linear state constraints). prior_params: ``EnvParams`` of the filter's model.
+        options: ``Options`` mapping (``safety_filters.nonlinear_mpsc``). plant_params: the plant the model-error
+            samples come from (default ``env.default_params``).
+
+    Raises:
+        ValueError: naming ``safety_filters.nonlinear_mpsc.<field>`` for a bad option.
+    """
+    return NonlinearMPSC(env, prior_params, parse_options(Options, options, PATH), plant_params)
+
+
+__all__ = ["Options", "NonlinearMPSC", "PATH", "TIGHTENINGS", "make_nonlinear_mpsc"]

@@ -1,0 +1,210 @@
+"""Model predictive safety filters: the batched linear MPSC against its CasADi reference, closed-loop safety on the
+cart-pole (linear batched, nonlinear single episode) and the errors for bad input."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import scg_jax
+from scg_algorithms.safety_filters import mpsc_experiment as E
+from scg_algorithms.safety_filters import mpsc_tightening as tight
+from scg_algorithms.safety_filters.base import SafetyFilter
+from scg_algorithms.safety_filters.mpsc_linear import build_problem, make_linear_mpsc, make_linear_mpsc_casadi
+from scg_algorithms.safety_filters.mpsc_nonlinear import make_nonlinear_mpsc
+
+OPTIONS = {"n_samples": 200, "sample_half_width": list(E.SAMPLE_HALF_WIDTH)}
+
+
+@pytest.fixture(scope="module")
+def env():
+    return E.make_env(episode_len_sec=2.0)
+
+
+@pytest.fixture(scope="module")
+def casadi_filter(env):
+    return make_linear_mpsc_casadi(env, env.default_params, OPTIONS)
+
+
+@pytest.fixture(scope="module")
+def x64_filters(env):
+    with jax.enable_x64(True):
+        qpax = make_linear_mpsc(env, env.default_params, {**OPTIONS, "solver": "qpax", "qpax_iterations": 80})
+        admm = make_linear_mpsc(env, env.default_params, {**OPTIONS, "admm_iterations": 5000, "warm_start": False})
+    return qpax, admm
+
+
+def _states(count, seed):
+    """Random states inside the position box, moving towards or away from the bound, and proposed inputs."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform([-0.4, -1.0, -0.1, -0.5], [0.45, 1.0, 0.1, 0.5], (count, 4))
+    x[:3] = [[0.56, 2.0, 0.0, 0.0], [0.49, 2.5, 0.05, 0.0], [-0.45, -3.0, 0.0, 0.0]]  # no plan exists from these
+    u = rng.uniform(-10.0, 10.0, (count, 1))
+    return x, u
+
+
+@functools.cache
+def _batched(f):
+    """One jitted, vmapped ``certify`` per filter, so every test of a batch of 24 reuses its compilation."""
+    return jax.jit(jax.vmap(f.certify, in_axes=(0, 0, None, 0)))
+
+
+def _certify_batch(f, x, u, state=None):
+    if state is None:
+        state = jax.vmap(f.reset)(jnp.arange(x.shape[0]))
+    return _batched(f)(x, u, f.params, state)
+
+
+def _plan_is_safe(problem, x, u_l):
+    """Whether ``u_l`` followed by the ancillary LQR keeps the nominal model inside the tightened rows."""
+    affine, rows = problem.affine, problem.rows
+    for j in range(problem.horizon):
+        u = u_l if j == 0 else problem.u_bar - problem.K @ (x - problem.x_bar)
+        x = affine.Ad[0] @ x + affine.Bd[0] @ u + affine.c[0]
+        if np.any(rows.Ax @ x + rows.Au @ u > rows.b - problem.margins[j] - 1e-6):
+            return False
+    return True
+
+
+def test_batched_qp_equals_casadi_reference(x64_filters, casadi_filter):
+    x, u = _states(24, 0)
+    with jax.enable_x64(True):
+        results = [_certify_batch(f, jnp.asarray(x), jnp.asarray(u)) for f in x64_filters]
+    reference = [casadi_filter.solve(xi, ui) for xi, ui in zip(x, u, strict=True)]
+    ok = np.array([r[2] for r in reference])
+    u_ref = np.array([r[0] for r in reference])
+    assert 10 <= ok.sum() < len(ok)  # both feasible and infeasible states are in the sample
+    (u_qpax, _, info_qpax), (u_admm, _, info_admm) = results
+    np.testing.assert_array_equal(np.asarray(info_qpax.feasible), ok)
+    np.testing.assert_allclose(np.asarray(u_qpax)[ok], u_ref[ok], atol=1e-4)
+    # The ADMM never calls an infeasible QP feasible; within its iterations it may miss a thin feasible set.
+    admm_ok = np.asarray(info_admm.feasible)
+    assert not np.any(admm_ok & ~ok) and admm_ok.sum() >= 0.6 * ok.sum()
+    # The ADMM is first order: at 5000 iterations its first input is within 1e-3 N (about 3e-4 N measured).
+    np.testing.assert_allclose(np.asarray(u_admm)[admm_ok], u_ref[admm_ok], atol=1e-3)
+
+
+def test_safe_input_passes_unchanged(x64_filters):
+    """Where the proposed input followed by the ancillary LQR is a safe plan, the QP's optimum is the proposal
+    (cost 0), so the correction is the solver's error: < 1e-6 N with qpax in float64, < 1e-4 N with the ADMM."""
+    problem = x64_filters[0].info["problem"]
+    rng = np.random.default_rng(2)
+    x = rng.uniform([-0.3, -0.3, -0.05, -0.2], [0.3, 0.3, 0.05, 0.2], (24, 4))
+    u = rng.uniform(-10.0, 10.0, (24, 1))
+    x[-4:], u[-4:] = [0.45, 1.0, 0.0, 0.0], 10.0  # full push outwards at the bound: must be changed
+    safe = np.array([_plan_is_safe(problem, xi, ui) for xi, ui in zip(x, u, strict=True)])
+    assert 6 <= safe.sum() <= 20 and not np.any(safe[-4:])
+    with jax.enable_x64(True):
+        for f, tolerance in zip(x64_filters, (1e-6, 1e-3), strict=True):
+            _, _, info = _certify_batch(f, jnp.asarray(x), jnp.asarray(u))
+            assert np.all(np.asarray(info.feasible)[safe])
+            correction = np.abs(np.asarray(info.correction))
+            assert correction[safe].max() < tolerance, (f.info["solver"], correction[safe].max())
+            assert correction[-4:].min() > 1.0  # the pushes were changed
+
+
+def test_fallback_continues_the_previous_plan(x64_filters):
+    """After a feasible step, an infeasible state is answered with the previous plan's next decision and the tube
+    feedback, ``u_eq - K (x - x_goal) + v_prev[kinf]``, for kinf = 1, 2."""
+    for f in x64_filters:
+        problem = f.info["problem"]
+        x_ok, u_ok = _states(24, 3)
+        x_ok[:] = [0.0, 0.3, 0.0, 0.0]
+        x_bad = np.tile([0.56, 2.0, 0.0, 0.0], (24, 1))  # outside the bound and moving away: no plan exists
+        with jax.enable_x64(True):
+            _, state, info = _certify_batch(f, jnp.asarray(x_ok), jnp.asarray(u_ok))
+            assert np.all(np.asarray(info.feasible)) and np.all(np.asarray(state.kinf) == 0)
+            for k in (1, 2):
+                u, state, info = _certify_batch(f, jnp.asarray(x_bad), jnp.asarray(u_ok), state)
+                assert not np.any(np.asarray(info.feasible)) and np.all(np.asarray(state.kinf) == k)
+                feedback = problem.u_bar - (x_bad - problem.x_bar) @ problem.K.T
+                expected = np.clip(feedback + np.asarray(state.v_plan)[:, k], -10.0, 10.0)
+                np.testing.assert_allclose(np.asarray(u), expected, atol=1e-9)
+
+
+def test_invariant_ellipsoid_contains_its_successors(env):
+    """The SDP's ellipsoid (cvxpy + Clarabel): boundary points pushed through the closed loop plus any sampled
+    error land inside, and the position row's margin is the ellipsoid's half-extent along the position."""
+    problem = build_problem(env, env.default_params, {"tightening": "none", "horizon": 5})
+    Ad, Bd, c = problem.affine.Ad[0], problem.affine.Bd[0], problem.affine.c[0]
+    A = Ad - Bd @ problem.K
+    x, u, x_next = tight.sample_transitions(env, env.default_params, 40, 3, E.SAMPLE_HALF_WIDTH)
+    w = x_next - (x @ Ad.T + u @ Bd.T + c)
+    P = tight.rpi_ellipsoid(A, w, 0.95)
+    rng = np.random.default_rng(0)
+    directions = rng.normal(size=(500, 4))
+    L = np.linalg.cholesky(np.linalg.inv(P))
+    e = (directions / np.linalg.norm(directions, axis=1, keepdims=True)) @ L.T  # e^T P e = 1
+    successors = (e @ A.T)[:, None, :] + w[None, :, :]
+    values = np.einsum("abi,ij,abj->ab", successors, P, successors)
+    assert values.max() <= 1.0 + 1e-6
+    assert values.max() > 0.5  # not trivially small: the ellipsoid is not much larger than it must be
+    margins = tight.ellipsoid_tightening(problem.rows.Ax, problem.rows.Au, problem.K, P)
+    position_row = int(np.flatnonzero(problem.rows.Ax[:, 0] > 0)[0])
+    np.testing.assert_allclose(margins[position_row], np.sqrt(np.linalg.inv(P)[0, 0]), rtol=1e-12)
+
+
+def test_linear_mpsc_keeps_the_cart_inside(env):
+    params = env.default_params
+    controller = E.setpoint_lqr(env, params)
+    key = jax.random.PRNGKey(0)
+    unfiltered = E.closed_loop(env, params, controller, None, key, 16)
+    f = make_linear_mpsc(env, params, {**OPTIONS, "admm_iterations": 200})
+    assert isinstance(f, SafetyFilter) and f.is_jax and f.system == "cartpole"
+    filtered = E.closed_loop(env, params, controller, f, key, 16)
+    assert unfiltered["violating"].any(axis=1).mean() > 0.9
+    assert filtered["violating"].any(axis=1).mean() <= 0.05
+    assert filtered["x"][:, :, 0].max() <= E.POSITION_BOUND + 1e-3
+    assert filtered["correction"].max() > 1.0  # it did intervene
+
+
+def test_nonlinear_mpsc_prevents_the_violation(env):
+    params = env.default_params
+    controller = E.setpoint_lqr(env, params)
+    f = make_nonlinear_mpsc(env, params, {**OPTIONS, "constraint_margin": 0.005})
+    assert isinstance(f, SafetyFilter) and not f.is_jax
+    step = jax.jit(env.step)
+    obs, state = env.reset(jax.random.PRNGKey(1), params)
+    unfiltered_state, fstate = state, f.reset(None)
+    violations, unfiltered_violations, feasible = 0, 0, 0
+    for _ in range(env.num_steps):
+        u_l = np.asarray(controller(obs))
+        u, fstate, info = f.certify(np.asarray(obs), u_l, None, fstate)
+        out = step(state, jnp.asarray(u, jnp.float32), params)
+        obs, state = out.obs, out.state
+        violations += int(out.info["constraint_violation"])
+        feasible += int(info.feasible)
+        free = step(unfiltered_state, controller(unfiltered_state.x), params)
+        unfiltered_state = free.state
+        unfiltered_violations += int(free.info["constraint_violation"])
+    assert unfiltered_violations >= 3
+    assert violations == 0 and feasible == env.num_steps
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"bogus": 1}, r"safety_filters\.linear_mpsc\.bogus: unknown key"),
+        ({"tau": 1.5}, r"safety_filters\.linear_mpsc\.tau: must be in \(0, 1\)"),
+        ({"solver": "osqp"}, r"safety_filters\.linear_mpsc\.solver: .*admm, qpax"),
+        ({"sample_half_width": [1.0]}, r"safety_filters\.linear_mpsc\.sample_half_width: expected 4 values"),
+    ],
+)
+def test_bad_options_name_the_field(env, options, message):
+    with pytest.raises(ValueError, match=message):
+        make_linear_mpsc(env, env.default_params, {"tightening": "none", **options})
+
+
+def test_bad_system_and_env_errors(env):
+    f = make_linear_mpsc(env, env.default_params, {"tightening": "none", "horizon": 5})
+    with pytest.raises(ValueError, match=r"built for cartpole \(state of 4 entries"):
+        f.certify(jnp.zeros(2), jnp.zeros(1), f.params, f.reset(None))
+    with pytest.raises(ValueError, match=r"built for cartpole"):
+        f.certify(jnp.zeros(4), jnp.zeros(2), f.params, f.reset(None))
+    free = scg_jax.make("cartpole")
+    with pytest.raises(ValueError, match=r"safety_filters\.linear_mpsc: the env has no linear constraint"):
+        make_linear_mpsc(free, free.default_params)
+    with pytest.raises(ValueError, match=r"safety_filters\.nonlinear_mpsc\.bogus: unknown key"):
+        make_nonlinear_mpsc(env, env.default_params, {"bogus": 1})
