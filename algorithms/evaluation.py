@@ -65,7 +65,7 @@ class Evaluation(NamedTuple):
             ``length_std`` (control steps), ``crash_rate``, ``compute_time_per_step_s``,
             ``compute_time_per_batch_step_s`` (JAX controllers; ``None`` for host ones), ``num_episodes``; for a
             safety-filtered controller (``scg_algorithms.safety_filters.filtered``) also ``intervention_fraction``
-            (steps where the filter changed the input by more than 1e-9 N / steps), ``mean_correction`` (mean
+            (steps where the filter changed the input by more than 1e-4 N / steps), ``mean_correction`` (mean
             ``|u - u_uncertified|`` over steps, N) and ``infeasible_fraction`` (steps whose filter problem failed).
         per_episode: ``scg_jax.metrics.episode_metrics`` of each episode, (num_episodes,) arrays.
         trajectory: ``x`` (T + 1, N, nx) states from reset to the last step, ``x_ref`` (T + 1, N, nx), ``obs``
