@@ -12,7 +12,7 @@ import numpy as np
 from scg_cli.common import UsageError, add_env_arguments, check_output, jsonable, make_env, positive_int, summary_table
 from scg_jax.files import write_json
 
-LEARNERS = ("ppo", "sac", "gp_mpc")
+LEARNERS = ("ppo", "sac", "gp_mpc", "rarl", "rap")
 
 
 def _positive_seconds(text: str) -> float:
