@@ -29,6 +29,7 @@ Writes ``benchmarks/results/robust_rl.json`` and ``docs/benchmarks/robust_rl.md`
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -140,8 +141,16 @@ def main(argv=None) -> int:
     parser.add_argument("--rap-scale", type=float, action="append", default=[], help="extra RAP adversary scale (N)")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/robust_rl.json")
     parser.add_argument("--markdown", type=Path, default=ROOT / "docs/benchmarks/robust_rl.md")
+    parser.add_argument(
+        "--report-only", action="store_true", help="rewrite the page from --out (also a partial run's) without training"
+    )
     args = parser.parse_args(argv)
     console = Console()
+    if args.report_only:
+        saved = json.loads(args.out.read_text())
+        record = {k: v for k, v in saved.items() if k not in ("partial", "steps_per_seed", "results")}
+        args.steps = saved["steps_per_seed"]
+        return report(args, record, saved["results"], console, partial=saved.get("partial", False))
     record = run_record("robust_rl")
     print_machine(console, record)
 
@@ -194,6 +203,11 @@ def main(argv=None) -> int:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         write_json(args.out, {**record, "partial": True, "steps_per_seed": args.steps, "results": results})
 
+    return report(args, record, results, console)
+
+
+def report(args, record: dict, results: dict, console, partial: bool = False) -> int:
+    """Ratios against PPO, the goals met or missed, the JSON and the Markdown page."""
     ppo = results["ppo"]
     nominal = lambda r: r["rmse_by_length"][LENGTHS.index(0.5)]  # noqa: E731
     dr_mean = lambda r: float(np.mean([r["rmse_by_length"][LENGTHS.index(v)] for v in DR_LENGTHS]))  # noqa: E731
@@ -228,8 +242,9 @@ def main(argv=None) -> int:
     for line in lines:
         console.print(line, highlight=False)
 
-    payload = {**record, "steps_per_seed": args.steps, "seeds": args.seeds, "episodes": args.episodes,
-               "lengths": LENGTHS, "noises": NOISES, "results": results, "ratios": checks, "goals": lines}  # fmt: skip
+    payload = {**record, "partial": partial, "steps_per_seed": args.steps, "seeds": args.seeds,
+               "episodes": args.episodes, "lengths": LENGTHS, "noises": NOISES, "results": results, "ratios": checks,
+               "goals": lines}  # fmt: skip
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_json(args.out, payload)
     columns = ["method", *[f"l={v:g}" for v in LENGTHS], *[f"σ={v:g} N" for v in NOISES], "steps/s vs PPO"]
@@ -242,7 +257,13 @@ def main(argv=None) -> int:
         f"episodes per point; each method trained {args.steps:,} env steps per seed (the seeds vmapped in one jitted "
         "run). Left: pole half-length l (m), no input noise; right: white noise of std σ on the cart force, "
         "l = 0.5 m. Evaluation env: configs/cartpole_stabilization.yaml without randomisation, "
-        "done_on_out_of_bounds false. Last column: training env steps/s over PPO's, same run, compile excluded.\n\n"
+        "done_on_out_of_bounds false. Last column: training env steps/s over PPO's, same run, compile excluded."
+        + (
+            " PARTIAL: the run was stopped before every method had finished; the rows are those that did."
+            if partial
+            else ""
+        )
+        + "\n\n"
         + "\n".join(f"- {line}" for line in lines)
     )
     write_markdown_table(args.markdown, "Robust RL on the cart-pole (Fig 8)", record, columns, rows, notes)
