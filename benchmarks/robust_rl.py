@@ -257,7 +257,9 @@ def report(args, record: dict, results: dict, console, partial: bool = False) ->
         f"episodes per point; each method trained {args.steps:,} env steps per seed (the seeds vmapped in one jitted "
         "run). Left: pole half-length l (m), no input noise; right: white noise of std σ on the cart force, "
         "l = 0.5 m. Evaluation env: configs/cartpole_stabilization.yaml without randomisation, "
-        "done_on_out_of_bounds false. Last column: training env steps/s over PPO's, same run, compile excluded."
+        "done_on_out_of_bounds false. Last column: training env steps/s over PPO's, same run, compile excluded; "
+        "the methods train one after another, so on a busy machine (see the load above) the ratio mostly measures "
+        "the load. Per-seed values are in benchmarks/results/robust_rl.json."
         + (
             " PARTIAL: the run was stopped before every method had finished; the rows are those that did."
             if partial
