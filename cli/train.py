@@ -13,7 +13,7 @@ from scg_cli.common import UsageError, add_env_arguments, check_output, jsonable
 from scg_cli.scale import add_scale_arguments, check_batch, make_mesh
 from scg_jax.files import write_json
 
-LEARNERS = ("ppo", "sac", "gp_mpc", "learned_cbf", "safe_ppo", "ppo_lagrangian")
+LEARNERS = ("ppo", "sac", "gp_mpc", "learned_cbf", "safe_ppo", "ppo_lagrangian", "rarl", "rap")
 
 
 def _positive_seconds(text: str) -> float:

@@ -14,12 +14,20 @@ from scg_algorithms.rl.checkpoint import load_checkpoint, load_metadata
 from scg_algorithms.rl.envs import policy_action_to_input
 from scg_algorithms.rl.training import POLICY_NAME
 
+# Learners that are a module of a shared package rather than a package ``scg_algorithms.<algo>`` of their own.
+LEARNER_MODULES = {"rarl": "scg_algorithms.robust.rarl", "rap": "scg_algorithms.robust.rap"}
+
 
 def algorithm_module(algo: str, part: str):
-    """``Config`` or ``make_learner`` of the package ``scg_algorithms.<algo>`` (top level, else its submodules)."""
-    package = importlib.import_module(f"scg_algorithms.{algo}")
+    """``Config``, ``make_learner`` or ``make_policy_learner`` of the learner ``algo``: the package
+    ``scg_algorithms.<algo>`` (top level, else its submodules) or its module in ``LEARNER_MODULES``.
+    ``make_policy_learner`` (what loads a saved policy) is ``make_learner`` unless the learner defines one (an
+    adversarial learner's protagonist loads on an env without the adversary input it trained against)."""
+    package = importlib.import_module(LEARNER_MODULES.get(algo, f"scg_algorithms.{algo}"))
     if hasattr(package, part):
         return getattr(package, part)
+    if part == "make_policy_learner":
+        return algorithm_module(algo, "make_learner")
     submodule = {"Config": "config", "make_learner": "train"}[part]
     return getattr(importlib.import_module(f"scg_algorithms.{algo}.{submodule}"), part)
 
@@ -63,7 +71,7 @@ def load_learner(directory, env):
             f"{env.observation_size} (a different obs_goal_horizon or system?)"
         )
     config = parse_options(algorithm_module(algo, "Config"), meta.get("config") or {}, f"training.{algo}")
-    return algorithm_module(algo, "make_learner")(config, env), meta
+    return algorithm_module(algo, "make_policy_learner")(config, env), meta
 
 
 def load_policy(directory, env, params) -> JaxController:
