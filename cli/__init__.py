@@ -28,6 +28,7 @@ from collections.abc import Callable
 
 from scg_cli.common import UsageError
 from scg_cli.evaluate import add_compare_parser, add_eval_parser, run_compare, run_eval
+from scg_cli.reproduce import add_reproduce_parser, run_reproduce
 from scg_cli.rollout import add_rollout_parser, run_rollout
 from scg_cli.train import add_train_parser, run_train
 
@@ -36,6 +37,7 @@ _SUBCOMMANDS: dict[str, tuple[Callable, Callable]] = {
     "eval": (add_eval_parser, run_eval),
     "compare": (add_compare_parser, run_compare),
     "train": (add_train_parser, run_train),
+    "reproduce": (add_reproduce_parser, run_reproduce),
 }
 
 
