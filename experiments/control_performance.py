@@ -12,9 +12,9 @@ import jax
 import numpy as np
 
 import scg_jax
-from scg_experiments import common
 from scg_algorithms import make_controller
 from scg_algorithms.evaluation import evaluate
+from scg_experiments import common
 
 NAME = "control_performance"
 TITLE = "Control performance (Figs 4 and 5)"
@@ -61,7 +61,10 @@ def run_system(ctx: common.Context, system: str, budget: dict) -> tuple[dict, di
     runs, missing = {}, []
     prior = scg_jax.prior_params(env, params, 1.5)
     with ctx.step(f"{system}: LQR and LQR 150% at 50 Hz"):
-        runs["lqr"] = (env, evaluate(env, params, make_controller("lqr", env, params, cfg.controllers["lqr"]), key, episodes))
+        runs["lqr"] = (
+            env,
+            evaluate(env, params, make_controller("lqr", env, params, cfg.controllers["lqr"]), key, episodes),
+        )
         lqr150 = make_controller("lqr", env, prior, cfg.controllers["lqr"])
         runs["lqr_150"] = (env, evaluate(env, params, lqr150, key, episodes))  # fmt: skip
     for algo, steps in budget["rl_steps"].get(system, {}).items():

@@ -45,7 +45,9 @@ def with_pole_length(params, length):
 
 def with_input_noise(params, std):
     noise = params.disturbances["action"][0]
-    return params.replace(disturbances={**params.disturbances, "action": (noise.replace(std=jnp.full_like(noise.std, std)),)})
+    return params.replace(
+        disturbances={**params.disturbances, "action": (noise.replace(std=jnp.full_like(noise.std, std)),)}
+    )
 
 
 def sweep(env, params, controller, key, episodes: int) -> tuple[np.ndarray, np.ndarray]:
