@@ -194,8 +194,22 @@ def train_policy(ctx: Context, algo: str, cfg, seed: int, total_env_steps: int, 
         directory.mkdir(parents=True, exist_ok=True)
         config_file = directory / "config.yaml"
         write_atomic(config_file, lambda f: f.write(text.encode()))
-        argv = ["train", "--algo", algo, "--config", str(config_file), "--out", str(directory), "--seed", str(seed),
-                "--overwrite", "--eval-episodes", "2", "--set", f"training.{algo}.total_env_steps={total_env_steps}"]  # fmt: skip
+        argv = [
+            "train",
+            "--algo",
+            algo,
+            "--config",
+            str(config_file),
+            "--out",
+            str(directory),
+            "--seed",
+            str(seed),
+            "--overwrite",
+            "--eval-episodes",
+            "2",
+            "--set",
+            f"training.{algo}.total_env_steps={total_env_steps}",
+        ]
         ctx.log(f"  training {algo} (seed {seed}, {total_env_steps:,} env steps) -> {directory}")
         status = scg_cli.main(argv)
         if status != 0:

@@ -174,8 +174,11 @@ def run(ctx: common.Context) -> common.Section:
     lower.set_title('2D quadrotor, "impossible" tracking')
     lower.legend(fontsize=7)
     section.files.append(common.write_csv(ctx.out / "violations.csv", rows) if rows else None)
-    section.files.append(common.write_data(ctx.out / "impossible_paths.json",
-                                           {m: (None if p is None else p.tolist()) for m, p in paths.items()}))  # fmt: skip
+    section.files.append(
+        common.write_data(
+            ctx.out / "impossible_paths.json", {m: (None if p is None else p.tolist()) for m, p in paths.items()}
+        )
+    )
     section.files.append(common.save_figure(figure, ctx.out / "constraint_satisfaction.png"))
     section.files = [f for f in section.files if f]
     section.claims = claims(curves, counts, missing, ctx.profile, len(next(iter(paths.values()))) if paths else 51)
@@ -228,12 +231,22 @@ def claims(curves: dict, counts: dict, missing: set, profile: str, points: int) 
     text = "GP-MPC needs much less training data than safety-layer PPO to minimise violations (seconds to reach its final level)"  # noqa: E501
     if "gp_mpc" in curves and "safe_ppo" in curves:
         t = {n: next(s for s, v in curves[n] if v <= final(n) + 1e-9) for n in ("gp_mpc", "safe_ppo")}
-        out.append(common.claim(text, t["gp_mpc"] < t["safe_ppo"], f"GP-MPC {t['gp_mpc']:.0f} s, safe_ppo {t['safe_ppo']:.0f} s"))  # fmt: skip
+        out.append(
+            common.claim(
+                text, t["gp_mpc"] < t["safe_ppo"], f"GP-MPC {t['gp_mpc']:.0f} s, safe_ppo {t['safe_ppo']:.0f} s"
+            )
+        )
     else:
         out.append(absent(text, "gp_mpc", "safe_ppo"))
     text = "Impossible tracking: linear MPC with the 150% prior violates the box"
     if "linear_mpc" in counts:
-        out.append(common.claim(text, counts["linear_mpc"] > 0, f"{counts['linear_mpc']} of {points} points outside (original: 25 of 51)"))  # fmt: skip
+        out.append(
+            common.claim(
+                text,
+                counts["linear_mpc"] > 0,
+                f"{counts['linear_mpc']} of {points} points outside (original: 25 of 51)",
+            )
+        )
     text = "Impossible tracking: GP-MPC meets the constraints (fewer points outside than linear MPC 150%, at most 2)"
     if "gp_mpc" in counts and "linear_mpc" in counts:
         g, l = counts["gp_mpc"], counts["linear_mpc"]

@@ -26,16 +26,22 @@ PROFILES = {
     "quick": {
         "systems": ["cartpole", "quadrotor_circle"],
         "episodes": 4,
-        "rl_steps": {"cartpole": {"ppo": 1_048_576, "sac": 60_000}, "quadrotor_circle": {"ppo": 2_097_152, "sac": 60_000}},
+        "rl_steps": {
+            "cartpole": {"ppo": 1_048_576, "sac": 60_000},
+            "quadrotor_circle": {"ppo": 2_097_152, "sac": 60_000},
+        },
         "gp_mpc": {"rounds": 1, "train_episodes": 2, "eval_episodes": 2},
     },
     "paper": {
         "systems": ["cartpole", "quadrotor_circle"],
         "episodes": 10,
-        "rl_steps": {"cartpole": {"ppo": 4_194_304, "sac": 150_000}, "quadrotor_circle": {"ppo": 8_388_608, "sac": 300_000}},
+        "rl_steps": {
+            "cartpole": {"ppo": 4_194_304, "sac": 150_000},
+            "quadrotor_circle": {"ppo": 8_388_608, "sac": 300_000},
+        },
         "gp_mpc": {"rounds": 2},
     },
-}  # fmt: skip
+}
 
 EVAL = ["env.done_on_out_of_bounds=false"]
 GP_MPC_RATE = ["env.ctrl_freq=10"]

@@ -140,10 +140,15 @@ def claims(curves: dict, missing: set, profile: str) -> list[common.Claim]:
             continue
         t_gp = converged_at(c["gp_mpc"])
         t_rl = {m: converged_at(curve) for m, curve in rl.items()}
-        out.append(common.claim(text, t_gp <= 0.1 * min(t_rl.values()),
-                                f"GP-MPC within 10% of its best after {t_gp:.1f} s; "
-                                + ", ".join(f"{m.upper()} after {t:.0f} s" for m, t in t_rl.items()),
-                                "RL's convergence is judged within its own (short) budget in the quick profile"))  # fmt: skip
+        out.append(
+            common.claim(
+                text,
+                t_gp <= 0.1 * min(t_rl.values()),
+                f"GP-MPC within 10% of its best after {t_gp:.1f} s; "
+                + ", ".join(f"{m.upper()} after {t:.0f} s" for m, t in t_rl.items()),
+                "RL's convergence is judged within its own (short) budget in the quick profile",
+            )
+        )
         untrained = c["gp_mpc"][0][1]
         matched = {m: first_below(curve, untrained) for m, curve in rl.items()}
         first = min(matched.values())
@@ -158,8 +163,13 @@ def claims(curves: dict, missing: set, profile: str) -> list[common.Claim]:
                 final = curve[-1][1]
                 text = (f"Once converged, {m.upper()} reaches a performance comparable to GP-MPC (final RMSE within "
                         f"1.5x of GP-MPC's best; {system})")  # fmt: skip
-                out.append(common.claim(text, final <= 1.5 * best_gp,
-                                        f"{m.upper()} {final:.4f}, GP-MPC {best_gp:.4f} ({common.ratio_text(final, best_gp)})"))  # fmt: skip
+                out.append(
+                    common.claim(
+                        text,
+                        final <= 1.5 * best_gp,
+                        f"{m.upper()} {final:.4f}, GP-MPC {best_gp:.4f} ({common.ratio_text(final, best_gp)})",
+                    )
+                )
     return out
 
 
