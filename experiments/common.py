@@ -36,6 +36,14 @@ CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 PROFILES = ("tiny", "quick", "paper")
 CACHE_VERSION = 1  # bump when a cached artefact's meaning changes
 
+# GP-MPC's learning loop per profile (over each config's controllers.gp_mpc), the same in every result that learns
+# on the same config, so they share one cached GP: rounds after the prior's data, episodes collected per round,
+# episodes each round is evaluated on.
+GP_MPC_LEARNING = {
+    "quick": {"rounds": 2, "train_episodes": 1, "eval_episodes": 2},
+    "paper": {"rounds": 6, "train_episodes": 2, "eval_episodes": 4},
+}
+
 HOLDS, FAILS, UNAVAILABLE, NOT_MEASURED = "holds", "does not hold", "method not available", "not measured"
 
 

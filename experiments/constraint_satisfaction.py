@@ -31,7 +31,7 @@ PROFILES = {
     "quick": {
         "episodes": 4,
         "rl_points": {name: [16_384, 131_072, 1_048_576] for name in ("ppo", "safe_ppo", "ppo_lagrangian")},
-        "gp_mpc": {"rounds": 2, "train_episodes": 1, "eval_episodes": 2},
+        "gp_mpc": common.GP_MPC_LEARNING["quick"],
         "impossible": ["linear_mpc", "gp_mpc", "safe_ppo"], "impossible_rl_steps": 1_048_576, "overrides": {},
     },
     "paper": {

@@ -30,7 +30,7 @@ PROFILES = {
             "cartpole": {"ppo": 1_048_576, "sac": 60_000},
             "quadrotor_circle": {"ppo": 2_097_152, "sac": 60_000},
         },
-        "gp_mpc": {"rounds": 1, "train_episodes": 2, "eval_episodes": 2},
+        "gp_mpc": common.GP_MPC_LEARNING["quick"],
     },
     "paper": {
         "systems": ["cartpole", "quadrotor_circle"],
@@ -39,7 +39,7 @@ PROFILES = {
             "cartpole": {"ppo": 4_194_304, "sac": 150_000},
             "quadrotor_circle": {"ppo": 8_388_608, "sac": 300_000},
         },
-        "gp_mpc": {"rounds": 2},
+        "gp_mpc": common.GP_MPC_LEARNING["paper"],
     },
 }
 

@@ -26,7 +26,7 @@ PROFILES = {
     },
     "quick": {
         "systems": ["cartpole", "quadrotor_circle"], "episodes": 4,
-        "gp_mpc": {"rounds": 2, "train_episodes": 1, "eval_episodes": 2},
+        "gp_mpc": common.GP_MPC_LEARNING["quick"],
         "rl_points": {
             "cartpole": {"ppo": [16_384, 65_536, 262_144, 1_048_576], "sac": [10_000, 30_000, 60_000]},
             "quadrotor_circle": {"ppo": [65_536, 262_144, 1_048_576, 2_097_152], "sac": [10_000, 30_000, 60_000]},
@@ -35,7 +35,7 @@ PROFILES = {
     },
     "paper": {
         "systems": ["cartpole", "quadrotor_circle"], "episodes": 10,
-        "gp_mpc": {"rounds": 6, "train_episodes": 2, "eval_episodes": 4},
+        "gp_mpc": common.GP_MPC_LEARNING["paper"],
         "rl_points": {
             "cartpole": {"ppo": [16_384, 65_536, 262_144, 1_048_576, 4_194_304],
                          "sac": [10_000, 25_000, 50_000, 100_000, 150_000]},

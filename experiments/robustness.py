@@ -30,9 +30,9 @@ OFF_NOMINAL = (0.75, 1.25, 1.65)  # the lengths issue 15 averages PPO^DR's gain 
 PROFILES = {
     "tiny": {"episodes": 2, "rl_steps": {}, "gp_mpc": None},
     "quick": {"episodes": 3, "rl_steps": {"ppo": 1_048_576, "ppo_dr": 1_048_576, "rap": 1_048_576, "rarl": 1_048_576},
-              "gp_mpc": {"rounds": 1, "train_episodes": 2, "eval_episodes": 2}},
+              "gp_mpc": common.GP_MPC_LEARNING["quick"]},
     "paper": {"episodes": 10, "rl_steps": {"ppo": 4_194_304, "ppo_dr": 4_194_304, "rap": 4_194_304, "rarl": 4_194_304},
-              "gp_mpc": {"rounds": 2}},
+              "gp_mpc": common.GP_MPC_LEARNING["paper"]},
 }  # fmt: skip
 
 # Every copy starts from the same state, so a sweep's grid values differ only in the pole length or the noise (with
