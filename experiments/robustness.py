@@ -187,7 +187,14 @@ def claims(lengths: dict, noise: dict, missing: set, profile: str) -> list[commo
             out.append(absent(text, model, "ppo"))
         else:
             a, b = (_mean_at(lengths, n, POLE_LENGTHS, off) for n in (model, "ppo"))
-            out.append(common.claim(text, a < b, f"{model} {a:.4f}, PPO {b:.4f} ({common.ratio_text(a, b)})"))
+            fallen = [v for v, r in zip(POLE_LENGTHS, lengths[model], strict=True) if r > 1.0]
+            note = (
+                f"{model} loses the pole (RMSE > 1) at l = {', '.join(f'{v:g}' for v in fallen)} m: its model "
+                "is the nominal (or 150%) pole, far from these lengths"
+                if a >= b and fallen
+                else ""
+            )
+            out.append(common.claim(text, a < b, f"{model} {a:.4f}, PPO {b:.4f} ({common.ratio_text(a, b)})", note))
     text = "LQR is no less resilient to input noise than PPO (mean RMSE over σ within 1.2x of PPO's or lower)"
     if need("ppo"):
         out.append(absent(text, "ppo"))
