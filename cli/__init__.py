@@ -9,13 +9,15 @@ in ``_SUBCOMMANDS``):
   paper's metrics; writes the JSON, the trajectories (.npz) and a plot (.png).
 - ``compare``: several controllers on the same episodes, side by side. Both ``eval`` and ``compare`` take
   ``--filter NAME|DIR`` (a safety filter around every controller; ``scg_algorithms.safety_filters``).
-- ``train``: PPO or SAC with the config's ``training.ALGO`` hyperparameters, or GP-MPC's learning loop with its
-  ``controllers.gp_mpc`` options, or a learned CBF (``--algo learned_cbf``); writes the policy (or the GP, or the
+- ``train``: a JAX learner (PPO, SAC, safety-layer PPO, PPO-Lagrangian, RARL, RAP) with the config's
+  ``training.ALGO`` hyperparameters, or GP-MPC's learning loop with its ``controllers.gp_mpc`` options, or a
+  learned CBF (``--algo learned_cbf``); writes the policy (or the GP, or the
   filter), checkpoints, the learning curve and ``metrics.json`` (training summary and an evaluation).
 - ``sweep``: controllers over a grid of config values and seeds as tasks, in-process or on Ray; one table.
+- ``reproduce``: the paper's results (``scg_experiments``): data, plots and ``report.md`` with each claim's verdict.
 
-Modules: ``common`` (environment options, the ``--out`` check, usage errors, tables), ``rollout``, ``evaluate``
-(eval and compare), ``train``.
+Modules: ``common`` (environment options, the ``--out`` check, usage errors, tables), ``scale`` (``--devices``,
+``--distributed``), ``rollout``, ``evaluate`` (eval and compare), ``train``, ``sweep``, ``reproduce``.
 
 ``main(argv) -> int`` never raises ``SystemExit`` itself: it returns 0 on success and 2 on bad input (argparse's
 convention), so it can be called from tests and from the console script alike.
@@ -30,6 +32,7 @@ from collections.abc import Callable
 
 from scg_cli.common import UsageError
 from scg_cli.evaluate import add_compare_parser, add_eval_parser, run_compare, run_eval
+from scg_cli.reproduce import add_reproduce_parser, run_reproduce
 from scg_cli.rollout import add_rollout_parser, run_rollout
 from scg_cli.sweep import add_sweep_parser, run_sweep_command
 from scg_cli.train import add_train_parser, run_train
@@ -40,6 +43,7 @@ _SUBCOMMANDS: dict[str, tuple[Callable, Callable]] = {
     "compare": (add_compare_parser, run_compare),
     "train": (add_train_parser, run_train),
     "sweep": (add_sweep_parser, run_sweep_command),
+    "reproduce": (add_reproduce_parser, run_reproduce),
 }
 
 

@@ -54,7 +54,7 @@ def test_every_package_folder_is_installed_under_its_import_name():
 
     setuptools = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
     import_name = {folder: name for name, folder in setuptools["package-dir"].items()}
-    folders = sorted(p.parent.relative_to(ROOT) for top in ("scg_jax", "algorithms", "cli")
+    folders = sorted(p.parent.relative_to(ROOT) for top in ("scg_jax", "algorithms", "cli", "experiments")
                      for p in (ROOT / top).rglob("__init__.py"))  # fmt: skip
     expected = sorted(".".join([import_name.get(f.parts[0], f.parts[0]), *f.parts[1:]]) for f in folders)
     assert sorted(setuptools["packages"]) == expected

@@ -1,0 +1,176 @@
+"""Control performance (the paper's Figs 4 and 5): closed-loop error |Δe| over time for LQR, LQR with the 150 %
+prior, GP-MPC with the 150 % prior, PPO and SAC, on the cart-pole stabilization and the 2D quadrotor circle.
+
+LQR, PPO and SAC run at 50 Hz; GP-MPC at 10 Hz as in the original (its IPOPT solve per step), so LQR is also
+evaluated at 10 Hz for the claim that GP-MPC matches it. Every method is scored by the common harness on the same
+initial states (same key), with ``done_on_out_of_bounds`` off so a failing method shows its whole error.
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+import scg_jax
+from scg_algorithms import make_controller
+from scg_algorithms.evaluation import evaluate
+from scg_experiments import common
+
+NAME = "control_performance"
+TITLE = "Control performance (Figs 4 and 5)"
+
+# systems: config names; rl_steps: training budget per learner and system (env steps); gp_mpc: learning-loop
+# options over the config's controllers.gp_mpc.
+PROFILES = {
+    "tiny": {"systems": ["cartpole"], "episodes": 2, "rl_steps": {}, "gp_mpc": None},
+    "quick": {
+        "systems": ["cartpole", "quadrotor_circle"],
+        "episodes": 4,
+        "rl_steps": {
+            "cartpole": {"ppo": 1_048_576, "sac": 60_000},
+            "quadrotor_circle": {"ppo": 2_097_152, "sac": 60_000},
+        },
+        "gp_mpc": common.GP_MPC_LEARNING["quick"],
+    },
+    "paper": {
+        "systems": ["cartpole", "quadrotor_circle"],
+        "episodes": 10,
+        "rl_steps": {
+            "cartpole": {"ppo": 4_194_304, "sac": 150_000},
+            "quadrotor_circle": {"ppo": 8_388_608, "sac": 300_000},
+        },
+        "gp_mpc": common.GP_MPC_LEARNING["paper"],
+    },
+}
+
+EVAL = ["env.done_on_out_of_bounds=false"]
+GP_MPC_RATE = ["env.ctrl_freq=10"]
+XZ = (0, 2)  # the quadrotor's x and z in its state
+
+
+def _scores(system: str, evaluation, dt: float) -> dict:
+    dims = XZ if system.startswith("quadrotor") else None
+    last_second = max(1, round(1.0 / dt))
+    return {
+        "rmse": float(evaluation.summary["rmse"]),
+        "rmse_unweighted": common.rmse_dims(evaluation, dims),
+        "final_error": float(common.error_norm(evaluation, dims)[-last_second:].mean()),
+        "crash_rate": float(evaluation.summary["crash_rate"]),
+        "failure_rate": float(evaluation.summary["failure_rate"]),
+    }
+
+
+def run_system(ctx: common.Context, system: str, budget: dict) -> tuple[dict, dict, list[str]]:
+    """Every method on ``system``: ``(scores per method, |Δe| curves per method, methods not available)``."""
+    cfg, env, params = common.load(system, EVAL)
+    seed = ctx.seeds[0]
+    key = jax.random.key(1_000 + seed)
+    episodes = budget["episodes"]
+    runs, missing = {}, []
+    prior = scg_jax.prior_params(env, params, 1.5)
+    with ctx.step(f"{system}: LQR and LQR 150% at 50 Hz"):
+        runs["lqr"] = (
+            env,
+            evaluate(env, params, make_controller("lqr", env, params, cfg.controllers["lqr"]), key, episodes),
+        )
+        lqr150 = make_controller("lqr", env, prior, cfg.controllers["lqr"])
+        runs["lqr_150"] = (env, evaluate(env, params, lqr150, key, episodes))  # fmt: skip
+    for algo, steps in budget["rl_steps"].get(system, {}).items():
+        if not common.learner_available(algo):
+            missing.append(algo)
+            continue
+        train_cfg = scg_jax.load_config(common.CONFIG_DIR / f"{system}.yaml")
+        policy, _ = common.train_policy(ctx, algo, train_cfg, seed, steps, env, params)
+        with ctx.step(f"{system}: evaluating {algo}"):
+            runs[algo] = (env, evaluate(env, params, policy, key, episodes))
+    if budget["gp_mpc"] is not None:
+        cfg10, env10, params10 = common.load(system, EVAL + GP_MPC_RATE)
+        directory, _ = common.learn_gp_mpc(ctx, system, GP_MPC_RATE, seed, 1.5, budget["gp_mpc"])
+        controller = common.load_gp_mpc(directory, env10, params10)
+        with ctx.step(f"{system}: evaluating GP-MPC and LQR at 10 Hz"):
+            runs["gp_mpc_150"] = (env10, evaluate(env10, params10, controller, key, episodes, progress=False))
+            lqr10 = make_controller("lqr", env10, params10, cfg10.controllers["lqr"])
+            runs["lqr_10hz"] = (env10, evaluate(env10, params10, lqr10, key, episodes))
+    scores = {name: _scores(system, ev, e.dt) for name, (e, ev) in runs.items()}
+    dims = XZ if system.startswith("quadrotor") else None
+    curves = {name: (np.arange(ev.trajectory["x"].shape[0]) * e.dt, common.error_norm(ev, dims).mean(axis=1))
+              for name, (e, ev) in runs.items()}  # fmt: skip
+    return scores, curves, missing
+
+
+def run(ctx: common.Context) -> common.Section:
+    budget = ctx.budget(PROFILES)
+    section = common.Section(NAME, TITLE)
+    plt = common.pyplot()
+    rows, all_scores, all_missing = [], {}, set()
+    figure, axes = plt.subplots(1, len(budget["systems"]), figsize=(5.5 * len(budget["systems"]), 3.8), squeeze=False)
+    for axis, system in zip(axes[0], budget["systems"], strict=True):
+        scores, curves, missing = run_system(ctx, system, budget)
+        all_scores[system], all_missing = scores, all_missing | set(missing)
+        rows += [{"system": system, "method": name, **s} for name, s in scores.items()]
+        for name, (t, err) in curves.items():
+            axis.plot(t, err, label=name, linestyle="--" if name == "lqr_10hz" else "-")
+        axis.set_yscale("log")
+        axis.set_xlabel("time (s)")
+        axis.set_ylabel("|Δe| (mean over episodes)" + (" (x, z)" if system.startswith("quadrotor") else ""))
+        axis.set_title(system)
+        axis.grid(alpha=0.3)
+        axis.legend(fontsize=7)
+        series = [{"method": n, "t_s": t.tolist(), "error_norm": e.tolist()} for n, (t, e) in curves.items()]
+        section.files.append(common.write_data(ctx.out / f"{system}_error.json", series))
+    section.files.append(common.write_csv(ctx.out / "scores.csv", rows))
+    section.files.append(common.save_figure(figure, ctx.out / "control_performance.png"))
+    section.claims = claims(all_scores, all_missing)
+    if all_missing:
+        section.notes.append(f"method {', '.join(sorted(all_missing))} not available in this build")
+    section.notes.append(
+        "RMSE is the harness's (Q-weighted error, mean over episodes); GP-MPC and `lqr_10hz` run at 10 Hz, the rest "
+        f"at 50 Hz; {budget['episodes']} episodes per method, seed {ctx.seeds[0]}."
+    )
+    section.notes.append(
+        "The original's GP-MPC (Fig 4 data, one episode from x0 = (-0.068, -0.065, -0.078, 0.034)): full-state "
+        "RMSE 0.193; here: "
+        + (f"{all_scores['cartpole']['gp_mpc_150']['rmse_unweighted']:.3f} (unweighted full state, mean over episodes)"
+           if "gp_mpc_150" in all_scores.get("cartpole", {}) else "not run in this profile")
+    )  # fmt: skip
+    return section
+
+
+def claims(scores: dict, missing: set) -> list[common.Claim]:
+    out = []
+    cart = scores.get("cartpole", {})
+    a, b = cart["lqr"]["rmse"], cart["lqr_150"]["rmse"]
+    out.append(common.claim("LQR with the 150% prior is worse than LQR (cart-pole)", b > a,
+                            f"RMSE {b:.4f} vs {a:.4f} ({common.ratio_text(b, a)})"))  # fmt: skip
+    if "gp_mpc_150" in cart:
+        g, l10, l150 = cart["gp_mpc_150"]["rmse"], cart["lqr_10hz"]["rmse"], cart["lqr_150"]["rmse"]
+        out.append(common.claim(
+            "GP-MPC (150% prior) closely matches LQR with the true parameters (cart-pole; within 1.25x at 10 Hz)",
+            g <= 1.25 * l10, f"GP-MPC RMSE {g:.4f}, LQR at 10 Hz {l10:.4f} ({common.ratio_text(g, l10)}), "
+            f"LQR 150% at 50 Hz {l150:.4f}"))  # fmt: skip
+    # Stabilised: mean |Δe| over the last second below 0.1; tracking: x-z RMSE below 0.25 m (half the radius).
+    tests = {
+        "cartpole": ("stabilize the cart-pole (mean |Δe| over the last second < 0.1)", "final_error", 0.1),
+        "quadrotor_circle": (
+            "track the quadrotor circle (x-z RMSE < 0.25 m, half the radius)",
+            "rmse_unweighted",
+            0.25,
+        ),
+    }
+    for system, (label, key, limit) in tests.items():
+        sys_scores = scores.get(system)
+        if not sys_scores:
+            continue
+        for algo in ("ppo", "sac"):
+            if algo in missing:
+                out.append(common.claim(f"{algo.upper()} is able to {label}", None, "", missing=[algo]))
+            elif algo in sys_scores:
+                value, lqr = sys_scores[algo][key], sys_scores["lqr"][key]
+                out.append(common.claim(f"{algo.upper()} is able to {label}", value < limit,
+                                        f"{key} {value:.4f} (LQR {lqr:.4f})"))  # fmt: skip
+    quad = scores.get("quadrotor_circle", {})
+    if "gp_mpc_150" in quad:
+        l, g = quad["lqr"]["rmse_unweighted"], quad["gp_mpc_150"]["rmse_unweighted"]
+        out.append(common.claim("LQR has larger tracking errors than GP-MPC on the quadrotor circle (x-z RMSE)",
+                                l > g, f"LQR {l:.4f} m, GP-MPC (150% prior) {g:.4f} m"))  # fmt: skip
+    return out

@@ -1,0 +1,129 @@
+"""The reproduction (``scg_experiments``, ``scg-jax reproduce``) at the tiny profile: its files, its report and the
+claims that hold even at a tiny budget (LQR with the 150 % prior is worse than LQR; RMSE rises with input noise)."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+
+import numpy as np
+import pytest
+from rich.console import Console
+
+import scg_cli
+from scg_experiments import RESULTS, common, reproduce, robustness
+
+
+def _rows(path):
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """LQR-only results of the tiny profile, run once for the module."""
+    out = tmp_path_factory.mktemp("reproduce")
+    sections = reproduce(["control_performance", "robustness", "throughput"], out, "tiny", 1, Console(quiet=True))
+    return out, {s.name: s for s in sections}
+
+
+def test_each_result_writes_data_png_and_its_report_section(tiny):
+    out, sections = tiny
+    for name, section in sections.items():
+        assert section.files and all((out / name / f).is_file() for f in section.files), name
+        assert any(f.endswith(".png") for f in section.files) and any(
+            f.endswith((".csv", ".json")) for f in section.files
+        )
+        assert np.isfinite(section.wall_s) and section.wall_s > 0
+    report = (out / "report.md").read_text()
+    for section in sections.values():
+        assert f"## {section.title}" in report and f"wall time {section.wall_s:.1f} s" in report
+    assert not list(out.rglob("*.tmp*"))  # every file written whole (atomically)
+
+
+def test_lqr_with_the_150_percent_prior_is_worse_than_lqr(tiny):
+    out, sections = tiny
+    scores = {r["method"]: float(r["rmse"]) for r in _rows(out / "control_performance" / "scores.csv")}
+    assert scores["lqr_150"] > scores["lqr"] > 0
+    (verdict,) = [c for c in sections["control_performance"].claims if "150% prior is worse" in c.text]
+    assert verdict.verdict == common.HOLDS and f"{scores['lqr_150']:.4f}" in verdict.measured
+
+
+def test_noise_sweep_rmse_rises_with_sigma_in_one_evaluation(tiny):
+    out, sections = tiny
+    rows = _rows(out / "robustness" / "robustness.csv")
+    noise = {float(r["value"]): float(r["lqr"]) for r in rows if r["sweep"] == "input_noise_std"}
+    lengths = {float(r["value"]): float(r["lqr"]) for r in rows if r["sweep"] == "pole_length"}
+    assert sorted(noise) == list(robustness.NOISE_STDS) and sorted(lengths) == list(robustness.POLE_LENGTHS)
+    assert noise[4.0] > noise[1.0] > noise[0.0]
+    assert lengths[3.0] > 10 * lengths[0.5]  # the nominal-model LQR loses a 6x longer pole
+    assert sections["robustness"].claims[0].verdict == common.HOLDS
+    # Methods left out of the tiny profile are reported as not run there, never as holding or failing.
+    assert all(c.verdict == common.NOT_MEASURED for c in sections["robustness"].claims[1:])
+
+
+def test_throughput_rows_and_ratio_to_the_original(tiny):
+    out, _ = tiny
+    rows = _rows(out / "throughput" / "throughput.csv")
+    assert [int(r["copies"]) for r in rows] == [1, 16]
+    for r in rows:
+        assert float(r["steps_per_s"]) > 0
+        assert float(r["x_original"]) == pytest.approx(float(r["steps_per_s"]) / 2100.0)
+
+
+def test_a_missing_method_is_reported_as_not_available():
+    lengths = {"lqr": np.ones(9), "ppo": np.ones(9)}
+    noise = {"lqr": np.linspace(0.1, 1, 6), "ppo": np.linspace(0.1, 1, 6)}
+    claims = robustness.claims(lengths, noise, {"rap", "ppo_dr"}, "quick")
+    rap = next(c for c in claims if c.text.startswith("RAP is more robust to input noise"))
+    assert rap.verdict == common.UNAVAILABLE and rap.measured == "method rap not available in this build"
+    lqr = next(c for c in claims if c.text.startswith("LQR is no less resilient"))
+    assert lqr.verdict == common.HOLDS  # equal curves: within 1.2x
+
+
+def test_availability_follows_the_build():
+    algos = common.train_algorithms()
+    assert {"ppo", "sac", "gp_mpc"} <= set(algos)
+    assert common.learner_available("ppo") and not common.learner_available("no_such_learner")
+    has_filters = importlib.util.find_spec("scg_algorithms.safety_filters") is not None
+    assert common.safety_filter("no_such_filter") is None
+    if not has_filters:
+        assert common.safety_filter("learned_cbf") is None
+
+
+def test_cli_rejects_unknown_results_and_profiles(tmp_path, capsys):
+    assert scg_cli.main(["reproduce", "no_such_result", "--out", str(tmp_path)]) == 2
+    assert "allowed values are " + ", ".join(RESULTS) in capsys.readouterr().err
+    assert scg_cli.main(["reproduce", "--profile", "huge", "--out", str(tmp_path)]) == 2
+    assert not list(tmp_path.iterdir())
+    with pytest.raises(ValueError, match="seeds: must be a positive integer"):
+        reproduce(["throughput"], tmp_path, "tiny", 0)
+
+
+def test_config_hash_names_what_determines_a_cached_artefact():
+    assert common.config_hash("ppo", "env: a", 0, 10) == common.config_hash("ppo", "env: a", 0, 10)
+    assert len({common.config_hash("ppo", "env: a", s, 10) for s in range(3)}) == 3
+    assert common.config_hash("ppo", "env: a", 0, 10) != common.config_hash("ppo", "env: a", 0, 11)
+
+
+@pytest.mark.slow
+def test_learning_and_constraint_results_at_the_tiny_budget_and_the_cache(tmp_path):
+    """A tiny PPO learning curve (cached: a rerun evaluates nothing new) and the impossible tracking of the linear
+    MPC with the 150 % prior, which leaves the box as in the original."""
+    console = Console(quiet=True)
+    (learning, constraint) = reproduce(["learning_efficiency", "constraint_satisfaction"], tmp_path, "tiny", 1, console)
+    rows = _rows(tmp_path / "learning_efficiency" / "learning_curves.csv")
+    assert [int(r["env_steps"]) for r in rows] == [1024, 2048]
+    assert [float(r["data_seconds"]) for r in rows] == pytest.approx([1024 * 0.02, 2048 * 0.02])
+    (curve_file,) = list((tmp_path / "cache").glob("ppo-curve-*/curve.json"))
+    cached = curve_file.stat().st_mtime_ns
+    reproduce(["learning_efficiency"], tmp_path, "tiny", 1, console)
+    assert curve_file.stat().st_mtime_ns == cached
+    assert json.loads(curve_file.read_text())["rows"][0]["rmse"] == pytest.approx(float(rows[0]["rmse"]))
+
+    box = next(c for c in constraint.claims if c.text.endswith("linear MPC with the 150% prior violates the box"))
+    assert box.verdict == common.HOLDS
+    paths = json.loads((tmp_path / "constraint_satisfaction" / "impossible_paths.json").read_text())
+    path = np.asarray(paths["linear_mpc"])
+    assert path.shape == (51, 2) and (path[:, 1].max() > 0.9 or np.abs(path[:, 0]).max() > 0.4)
