@@ -12,7 +12,8 @@ import pytest
 from rich.console import Console
 
 import scg_cli
-from scg_experiments import RESULTS, common, reproduce, robustness
+import scg_jax
+from scg_experiments import RESULTS, common, constraint_satisfaction, reproduce, robustness, throughput
 
 
 def _rows(path):
@@ -127,3 +128,93 @@ def test_learning_and_constraint_results_at_the_tiny_budget_and_the_cache(tmp_pa
     paths = json.loads((tmp_path / "constraint_satisfaction" / "impossible_paths.json").read_text())
     path = np.asarray(paths["linear_mpc"])
     assert path.shape == (51, 2) and (path[:, 1].max() > 0.9 or np.abs(path[:, 0]).max() > 0.4)
+
+
+# Budgets of one or two iterations of 256 env steps (16 copies x 16 steps) for every method merged after the results
+# were written, so their training, loading as a controller and evaluation run inside the results.
+SMALL = ["num_envs=16", "rollout_length=16", "num_minibatches=2", "num_epochs=1"]
+SAFE_PPO_SMALL = ["constraint_epochs=1", "constraint_steps_per_epoch=256", "constraint_eval_steps=256"]
+
+
+def _small(algo, *extra):
+    return [f"training.{algo}.{kv}" for kv in (*SMALL, *extra)]
+
+
+@pytest.mark.slow
+def test_robust_methods_train_load_and_sweep_inside_the_result(tmp_path, monkeypatch):
+    """RARL, RAP and PPO^DR (PPO on the randomised pole) trained through the CLI on the result's plant with their
+    own adversary or randomisation, loaded as controllers and swept; every robustness claim is measured."""
+    steps = {"ppo": 256, "ppo_dr": 256, "rarl": 512, "rap": 256}  # RARL alternates: one protagonist, one adversary
+    overrides = {m: _small("ppo" if m == "ppo_dr" else m) for m in steps}
+    monkeypatch.setitem(robustness.PROFILES, "tiny", {"episodes": 1, "rl_steps": steps, "gp_mpc": None,
+                                                      "overrides": overrides})  # fmt: skip
+    (section,) = reproduce(["robustness"], tmp_path, "tiny", 1, Console(quiet=True))
+    rows = _rows(tmp_path / "robustness" / "robustness.csv")
+    assert set(rows[0]) == {"sweep", "value", "lqr", *steps}
+    assert all(np.isfinite(float(r[m])) for r in rows for m in steps)
+    for algo, channel in (("rarl", "dynamics"), ("rap", "action")):
+        (run,) = [p for p in (tmp_path / "cache").glob(f"{algo}-*") if p.is_dir()]
+        adversary = scg_jax.load_config(run / "config.yaml").env.adversary
+        assert (adversary.channel, adversary.scale) == (channel, pytest.approx(0.1))
+    trained = [scg_jax.load_config(p / "config.yaml") for p in (tmp_path / "cache").glob("ppo-*")]
+    assert sorted(c.env.physics_randomization is not None for c in trained) == [False, True]  # PPO and PPO^DR
+    assert [c.verdict for c in section.claims if "not measured" in c.measured or "not run" in c.measured] == []
+    assert all(c.verdict in (common.HOLDS, common.FAILS) for c in section.claims[1:4])
+
+
+@pytest.mark.slow
+def test_safe_rl_methods_and_learned_cbf_run_inside_the_constraint_result(tmp_path, monkeypatch):
+    """Safety-layer PPO and PPO-Lagrangian learning curves, the learned CBF's loop and safety-layer PPO on the
+    impossible task, each at a budget of one iteration: every one is measured (a verdict, not "not measured")."""
+    budget = {
+        "episodes": 1,
+        "rl_points": {"ppo": [256], "safe_ppo": [256], "ppo_lagrangian": [256]},
+        "gp_mpc": None,
+        "impossible": ["linear_mpc", "safe_ppo"],
+        "impossible_rl_steps": 256,
+        "overrides": {"ppo": _small("ppo"), "safe_ppo": _small("safe_ppo", *SAFE_PPO_SMALL),
+                      "ppo_lagrangian": _small("ppo_lagrangian")},
+        "cbf": {"num_episodes": 1, "num_copies": 8, "train_iterations": 2, "batch_size": 32, "eval_episodes": 4},
+    }  # fmt: skip
+    monkeypatch.setitem(constraint_satisfaction.PROFILES, "tiny", budget)
+    (section,) = reproduce(["constraint_satisfaction"], tmp_path, "tiny", 1, Console(quiet=True))
+    rows = _rows(tmp_path / "constraint_satisfaction" / "violations.csv")
+    assert {r["method"] for r in rows} == {"ppo", "safe_ppo", "ppo_lagrangian", "learned_cbf"}
+    assert all(0.0 <= float(r["violation_fraction"]) <= 1.0 for r in rows)
+    assert [int(r["env_steps"]) for r in rows if r["method"] != "learned_cbf"] == [256, 256, 256]
+    paths = json.loads((tmp_path / "constraint_satisfaction" / "impossible_paths.json").read_text())
+    assert np.asarray(paths["safe_ppo"]).shape == (51, 2)
+    measured = {c.text: c.verdict for c in section.claims}
+    assert measured["Impossible tracking: safety-layer PPO does not fully guarantee constraint satisfaction (some "
+                    "points outside)"] in (common.HOLDS, common.FAILS)  # fmt: skip
+    for better in ("learned_cbf", "safe_ppo"):
+        text = f"Vanilla PPO cannot match {better}'s constraint satisfaction after training (final violation fraction)"
+        assert measured[text] in (common.HOLDS, common.FAILS)
+
+
+def test_a_failing_method_or_result_is_reported_and_the_report_written_whole(tmp_path, monkeypatch):
+    """A method whose training raises makes its claims "not measured" with the error while the other methods run;
+    a result that raises still gets its section, and the report is written with every section."""
+
+    def broken(ctx, algo, *args, **kwargs):
+        raise RuntimeError(f"{algo} exploded")
+
+    monkeypatch.setattr(common, "train_policy", broken)
+    # The sweep itself is covered above; here each controller's sweep is a rising curve, so the LQR claim holds.
+    monkeypatch.setattr(robustness, "sweep", lambda *args: (np.linspace(0.1, 1, 9), np.linspace(0.1, 1, 6)))
+    monkeypatch.setitem(robustness.PROFILES, "tiny", {"episodes": 1, "rl_steps": {"rap": 256}, "gp_mpc": None})
+
+    def raises(ctx):
+        raise ValueError("no throughput today\nsecond line")
+
+    monkeypatch.setattr(throughput, "run", raises)
+    sections = reproduce(["robustness", "throughput"], tmp_path, "tiny", 1, Console(quiet=True))
+    rob = sections[0]
+    assert rob.claims[0].verdict == common.HOLDS  # LQR still measured
+    rap = next(c for c in rob.claims if c.text.startswith("RAP is more robust to input noise"))
+    assert rap.verdict == common.NOT_MEASURED and rap.measured == "not measured: rap failed: RuntimeError: rap exploded"
+    assert sections[1].claims[0].verdict == common.NOT_MEASURED
+    assert sections[1].claims[0].measured == "not measured: ValueError: no throughput today"
+    report = (tmp_path / "report.md").read_text()
+    assert "rap failed: RuntimeError: rap exploded" in report and "## " + throughput.TITLE in report
+    assert not list(tmp_path.rglob("*.tmp*"))
