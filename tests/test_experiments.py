@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import importlib.util
 import json
+import os
 
 import numpy as np
 import pytest
@@ -140,6 +141,14 @@ def _small(algo, *extra):
     return [f"training.{algo}.{kv}" for kv in (*SMALL, *extra)]
 
 
+# The two runs below compile about ten learners and evaluators (about 95 s and 115 s on 2 busy cores), more than the
+# CI budget leaves; they run when SCG_EXPERIMENT_METHODS=1 is set (e.g. before changing a learner the results use).
+methods_run = pytest.mark.skipif(
+    os.environ.get("SCG_EXPERIMENT_METHODS") != "1",
+    reason="set SCG_EXPERIMENT_METHODS=1 to train every merged method inside its result (about 3.5 min)",
+)
+
+
 def test_every_merged_method_builds_its_learner_from_the_results_configs():
     """The configs the results train RARL, RAP, PPO^DR, safety-layer PPO and PPO-Lagrangian with are accepted by
     those learners (options, adversary channel, constraint rows), without training anything."""
@@ -178,7 +187,16 @@ def _small(algo, *extra):
     return [f"training.{algo}.{kv}" for kv in (*SMALL, *extra)]
 
 
+# The two runs below compile about ten learners and evaluators (about 95 s and 115 s on 2 busy cores), more than the
+# CI budget leaves; they run when SCG_EXPERIMENT_METHODS=1 is set (e.g. before changing a learner the results use).
+methods_run = pytest.mark.skipif(
+    os.environ.get("SCG_EXPERIMENT_METHODS") != "1",
+    reason="set SCG_EXPERIMENT_METHODS=1 to train every merged method inside its result (about 3.5 min)",
+)
+
+
 @pytest.mark.slow
+@methods_run
 def test_robust_methods_train_load_and_sweep_inside_the_result(tmp_path, monkeypatch):
     """RARL and RAP trained through the CLI on the result's plant with their own adversaries, loaded as controllers
     (on the env without an adversary input) and swept; their claims are measured."""
@@ -193,13 +211,14 @@ def test_robust_methods_train_load_and_sweep_inside_the_result(tmp_path, monkeyp
     for algo, channel in (("rarl", "dynamics"), ("rap", "action")):
         (run,) = [p for p in (tmp_path / "cache").glob(f"{algo}-*") if p.is_dir()]
         metrics = json.loads((run / "metrics.json").read_text())
-        assert metrics["algo"] == algo and metrics["env_steps"] == 256
+        assert metrics["algo"] == algo and metrics["training"]["env_steps"] == 256
         adversary = scg_jax.load_config(run / "config.yaml").env.adversary
         assert (adversary.channel, adversary.scale) == (channel, pytest.approx(0.1))
     assert all("failed" not in c.measured for c in section.claims) and not section.notes[:-1]
 
 
 @pytest.mark.slow
+@methods_run
 def test_safe_rl_methods_and_learned_cbf_run_inside_the_constraint_result(tmp_path, monkeypatch):
     """Safety-layer PPO and PPO-Lagrangian learning curves, the learned CBF's loop and safety-layer PPO trained
     through the CLI on the impossible task, each at a budget of one iteration: every one is measured."""
