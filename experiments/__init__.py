@@ -54,7 +54,14 @@ def reproduce(names: Sequence[str], out, profile: str = "quick", seeds: int = 1,
         ctx.out.mkdir(parents=True, exist_ok=True)
         console.rule(f"{module.TITLE} [{profile}]")
         start = time.perf_counter()
-        section = module.run(ctx)
+        try:
+            section = module.run(ctx)
+        except Exception as error:  # one broken result is reported in the report; the others still run
+            section = common.Section(name, module.TITLE)
+            text = common.failure_text(error)
+            section.claims = [common.Claim(f"the result {name} ran", common.NOT_MEASURED, f"not measured: {text}")]
+            section.notes.append(f"{name} stopped with {text}; nothing of it was measured")
+            console.print(f"{name} failed: {text}", markup=False, highlight=False)
         section.wall_s = time.perf_counter() - start
         common.write_data(ctx.out / "section.json", {"markdown": section.markdown(), "wall_s": section.wall_s,
                                                      "claims": [c.__dict__ for c in section.claims]})  # fmt: skip

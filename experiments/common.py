@@ -145,6 +145,29 @@ def load(name: str, overrides: Iterable[str] = ()):
     return cfg, env, params
 
 
+def with_method(cfg, source: Path, keys: Sequence[str], overrides: Iterable[str] = ()):
+    """``cfg`` (a ``scg_jax.Config``) with the dotted ``keys`` (e.g. ``env.adversary``, ``training.rarl``) taken from
+    the config file ``source``, then ``overrides``: a method's own settings (its adversary, its randomisation, its
+    learner section) on the plant every method of a result is scored on. ``KeyError`` naming the key and the file
+    when ``source`` lacks one."""
+    data = scg_jax.load_config(source).to_dict()
+    values = {}
+    for dotted in keys:
+        node = data
+        for part in dotted.split("."):
+            if not isinstance(node, Mapping) or node.get(part) is None:
+                raise KeyError(f"{source}: no {dotted}")
+            node = node[part]
+        values[dotted] = node
+    return scg_jax.load_config(cfg.to_dict(), list(overrides), values=values)
+
+
+def failure_text(error: BaseException) -> str:
+    """One line for the report: the error's type and the first line of its message."""
+    message = str(error).strip().splitlines()
+    return f"{type(error).__name__}: {message[0] if message else ''}"[:300]
+
+
 def config_hash(*parts) -> str:
     """A short stable hash of JSON-able ``parts`` (config text, budget, seed, ...)."""
     text = json.dumps([CACHE_VERSION, *parts], sort_keys=True, default=str)

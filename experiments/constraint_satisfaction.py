@@ -48,6 +48,7 @@ PROFILES = {
 EVAL = ["env.done_on_out_of_bounds=false"]
 GP_MPC_RATE = ["env.ctrl_freq=10"]
 BOX = {"x": (-0.4, 0.4), "z": (-0.01, 0.9)}  # the impossible task's state box (m)
+IMPOSSIBLE = " (impossible tracking)"  # suffix of a method's failure on the impossible task in ``failed``
 ORIGINAL_OUTSIDE = {"linear_mpc": 25, "gp_mpc": 0}  # of 51 points (spec §1, fig7_csvs)
 
 
@@ -95,8 +96,9 @@ def learned_cbf_curve(ctx, env, params, key, episodes: int, learning: dict) -> t
     return (rows or [lqr_row]), note
 
 
-def top(ctx, budget) -> tuple[dict, set, list[str], list[dict]]:
-    """Violation fraction against training data per method (mean over seeds)."""
+def top(ctx, budget, failed: dict) -> tuple[dict, set, list[str], list[dict]]:
+    """Violation fraction against training data per method (mean over seeds); a method whose learning fails is
+    added to ``failed`` (``{method: error}``) and left out."""
     _, env, params = common.load("cartpole_constraint", EVAL)
     curves, missing, notes, rows = {}, set(), [], []
     for seed in ctx.seeds:
@@ -104,21 +106,38 @@ def top(ctx, budget) -> tuple[dict, set, list[str], list[dict]]:
             if not common.learner_available(algo):
                 missing.add(algo)
                 continue
-            cfg = scg_jax.load_config(common.CONFIG_DIR / "cartpole_constraint.yaml", budget["overrides"].get(algo, []))
-            curve = common.learning_curve(ctx, algo, cfg, seed, points, env, params, budget["episodes"])
+            if algo in failed:
+                continue
+            try:
+                overrides = budget["overrides"].get(algo, [])
+                cfg = scg_jax.load_config(common.CONFIG_DIR / "cartpole_constraint.yaml", overrides)
+                curve = common.learning_curve(ctx, algo, cfg, seed, points, env, params, budget["episodes"])
+            except Exception as error:  # reported in the claims; the other methods still run
+                failed[algo] = common.failure_text(error)
+                ctx.log(f"  {algo} failed: {failed[algo]}")
+                continue
             rows += [{"method": algo, "seed": seed, **r} for r in curve]
             curves.setdefault(algo, []).append([(r["data_seconds"], r["violation_fraction"]) for r in curve])
-        if budget["gp_mpc"] is not None:
-            _, history = common.learn_gp_mpc(ctx, "cartpole_constraint", GP_MPC_RATE, seed, 1.5, budget["gp_mpc"])
+        if budget["gp_mpc"] is not None and "gp_mpc" not in failed:
+            try:
+                _, history = common.learn_gp_mpc(ctx, "cartpole_constraint", GP_MPC_RATE, seed, 1.5, budget["gp_mpc"])
+            except Exception as error:
+                failed["gp_mpc"] = common.failure_text(error)
+                ctx.log(f"  gp_mpc failed: {failed['gp_mpc']}")
+                continue
             length = 5.0 * 10  # control steps per 5 s episode at 10 Hz
             curve = [(h["data_seconds"], h["constraint_violation_steps"] / length) for h in history]
             rows += [{"method": "gp_mpc", "seed": seed, "data_seconds": s, "violation_fraction": v} for s, v in curve]
             curves.setdefault("gp_mpc", []).append(curve)
+    for method in failed:  # a method that failed on one seed is not averaged over the others
+        curves.pop(method, None)
     if budget["rl_points"]:  # the learned CBF belongs to the learning comparison, not to the tiny profile
         cbf_rows, note = learned_cbf_curve(ctx, env, params, jax.random.key(7), budget["episodes"], budget["cbf"])
         notes.append(note)
         if cbf_rows is None and "not available" in note:
             missing.add("learned_cbf")
+        elif cbf_rows is None:
+            failed["learned_cbf"] = note.split(": ", 1)[-1]
         elif cbf_rows:
             rows += [{"method": "learned_cbf", "seed": 0, **r} for r in cbf_rows]
             curves["learned_cbf"] = [[(r["data_seconds"], r["violation_fraction"]) for r in cbf_rows]]
@@ -127,29 +146,37 @@ def top(ctx, budget) -> tuple[dict, set, list[str], list[dict]]:
     return mean, missing, notes, rows
 
 
-def impossible(ctx, budget) -> tuple[dict, set, list[str]]:
-    """x-z paths of one episode of the impossible task per method, and the methods not available."""
+def impossible(ctx, budget, failed: dict) -> tuple[dict, set, list[str]]:
+    """x-z paths of one episode of the impossible task per method, and the methods not available; a method that
+    fails is added to ``failed`` (``{method: error}``)."""
     cfg, env, params = common.load("quadrotor_impossible")
     key = jax.random.key(0)
     prior = scg_jax.prior_params(env, params, 1.5)
-    paths, missing, notes = {}, set(), []
+    paths, missing, notes, reference = {}, set(), [], None
     for method in budget["impossible"]:
-        if method == "linear_mpc":
-            controller = make_controller("linear_mpc", env, prior, cfg.controllers["linear_mpc"])
-        elif method == "gp_mpc":
-            directory, _ = common.learn_gp_mpc(ctx, "quadrotor_impossible", [], ctx.seeds[0], 1.5, budget["gp_mpc"])
-            controller = common.load_gp_mpc(directory, env, params)
-        elif not common.learner_available(method):
+        if method not in ("linear_mpc", "gp_mpc") and not common.learner_available(method):
             missing.add(method)
             continue
-        else:
-            controller, _ = common.train_policy(
-                ctx, method, cfg, ctx.seeds[0], budget["impossible_rl_steps"], env, params
-            )
-        with ctx.step(f"impossible tracking: {method}"):
-            evaluation = evaluate(env, params, controller, key, 1, measure_time=False)
+        try:
+            if method == "linear_mpc":
+                controller = make_controller("linear_mpc", env, prior, cfg.controllers["linear_mpc"])
+            elif method == "gp_mpc":
+                directory, _ = common.learn_gp_mpc(ctx, "quadrotor_impossible", [], ctx.seeds[0], 1.5,
+                                                   budget["gp_mpc"])  # fmt: skip
+                controller = common.load_gp_mpc(directory, env, params)
+            else:
+                train_cfg = scg_jax.load_config(cfg, budget["overrides"].get(method, []))
+                steps = budget["impossible_rl_steps"]
+                controller, _ = common.train_policy(ctx, method, train_cfg, ctx.seeds[0], steps, env, params)
+            with ctx.step(f"impossible tracking: {method}"):
+                evaluation = evaluate(env, params, controller, key, 1, measure_time=False)
+        except Exception as error:  # reported in the claims; the other methods still run
+            failed[method + IMPOSSIBLE] = common.failure_text(error)
+            ctx.log(f"  {method} (impossible tracking) failed: {failed[method + IMPOSSIBLE]}")
+            continue
         paths[method] = np.asarray(evaluation.trajectory["x"])[:, 0][:, [0, 2]]
-    paths["reference"] = np.asarray(evaluation.trajectory["x_ref"])[:, 0][:, [0, 2]] if paths else None
+        reference = np.asarray(evaluation.trajectory["x_ref"])[:, 0][:, [0, 2]]
+    paths["reference"] = reference
     return paths, missing, notes
 
 
@@ -162,8 +189,9 @@ def outside(path: np.ndarray) -> int:
 def run(ctx: common.Context) -> common.Section:
     budget = ctx.budget(PROFILES)
     section = common.Section(NAME, TITLE)
-    curves, missing, notes, rows = top(ctx, budget)
-    paths, missing_b, notes_b = impossible(ctx, budget)
+    failed = {}
+    curves, missing, notes, rows = top(ctx, budget, failed)
+    paths, missing_b, notes_b = impossible(ctx, budget, failed)
     missing |= missing_b
     plt = common.pyplot()
     figure, (upper, lower) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
@@ -200,8 +228,10 @@ def run(ctx: common.Context) -> common.Section:
     )
     section.files.append(common.save_figure(figure, ctx.out / "constraint_satisfaction.png"))
     section.files = [f for f in section.files if f]
-    section.claims = claims(curves, counts, missing, ctx.profile, len(next(iter(paths.values()))) if paths else 51)
+    points = next((len(p) for p in paths.values() if p is not None), 51)
+    section.claims = claims(curves, counts, missing, ctx.profile, points, failed)
     section.notes += notes + notes_b
+    section.notes += [f"{name} not measured: {error}" for name, error in sorted(failed.items())]
     for method, count in counts.items():
         if method in ORIGINAL_OUTSIDE:
             section.notes.append(f"Impossible tracking, {method}: {count} of 51 points outside the box here; the "
@@ -218,16 +248,22 @@ def run(ctx: common.Context) -> common.Section:
     return section
 
 
-def claims(curves: dict, counts: dict, missing: set, profile: str, points: int) -> list[common.Claim]:
-    out = []
+def claims(curves: dict, counts: dict, missing: set, profile: str, points: int, failed: dict | None = None):
+    """The claims of the figure; a method in ``missing`` makes a claim ``UNAVAILABLE``, one in ``failed``
+    (``{method: error}``, the impossible task's as ``"<method> (impossible tracking)"``) ``NOT_MEASURED`` with the
+    error."""
+    out, failed = [], dict(failed or {})
 
     def final(method):
         return curves[method][-1][1]
 
-    def absent(text, *names):
+    def absent(text, *names, task=""):
         unavailable = [n for n in names if n in missing]
         if unavailable:
             return common.claim(text, None, "", missing=unavailable)
+        broken = [n + task for n in names if n + task in failed]
+        if broken:
+            return common.claim(text, None, "not measured: " + "; ".join(f"{n} failed: {failed[n]}" for n in broken))
         return common.claim(
             text, None, f"{', '.join(n for n in names if n not in curves)} not run in the {profile} profile"
         )
@@ -268,17 +304,19 @@ def claims(curves: dict, counts: dict, missing: set, profile: str, points: int) 
                 f"{counts['linear_mpc']} of {points} points outside (original: 25 of 51)",
             )
         )
+    else:
+        out.append(absent(text, "linear_mpc", task=IMPOSSIBLE))
     text = "Impossible tracking: GP-MPC meets the constraints (fewer points outside than linear MPC 150%, at most 2)"
     if "gp_mpc" in counts and "linear_mpc" in counts:
         g, l = counts["gp_mpc"], counts["linear_mpc"]
         out.append(common.claim(text, g < l and g <= 2, f"GP-MPC {g}, linear MPC {l} of {points} (original: 0 and 25)"))
     else:
-        out.append(absent(text, "gp_mpc"))
+        out.append(absent(text, "gp_mpc", task=IMPOSSIBLE))
     text = (
         "Impossible tracking: safety-layer PPO does not fully guarantee constraint satisfaction (some points outside)"
     )
     if "safe_ppo" in counts:
         out.append(common.claim(text, counts["safe_ppo"] > 0, f"{counts['safe_ppo']} of {points} points outside"))
     else:
-        out.append(absent(text, "safe_ppo"))
+        out.append(absent(text, "safe_ppo", task=IMPOSSIBLE))
     return out

@@ -39,7 +39,15 @@ PROFILES = {
 # random initial states, their spread hides the effect of the smaller noise levels at a few episodes per point).
 EVAL = ["env.done_on_out_of_bounds=false", "env.init_state=[0.1, 0.0, 0.1, 0.0]"]
 GP_MPC_RATE = ["env.ctrl_freq=10"]
-ADVERSARY = ["env.adversary.channel=action", "env.adversary.scale=1.0"]  # RARL's and RAP's adversary input (N)
+# Each robust method's own settings, taken from the project's config of it (``configs/``) onto this result's plant
+# (experiments/configs/cartpole.yaml), so every method is trained and scored on the same cart-pole: RARL's adversary
+# pushes on the pole (dynamics channel, 0.1 N), RAP's two adversaries add to the cart force (action channel, 0.1 N),
+# PPO^DR draws the pole length at every reset (absolute U(0.1, 1.0) m, the randomisation the original intended).
+METHOD_SETTINGS = {
+    "rarl": ("rarl", "paper_cartpole_rarl.yaml", ("env.adversary", "training.rarl")),
+    "rap": ("rap", "paper_cartpole_rap.yaml", ("env.adversary", "training.rap")),
+    "ppo_dr": ("ppo", "paper_cartpole_ppo_dr_absolute.yaml", ("env.physics_randomization",)),
+}
 
 
 def with_pole_length(params, length):
@@ -65,53 +73,66 @@ def sweep(env, params, controller, key, episodes: int) -> tuple[np.ndarray, np.n
     return rmse[: len(POLE_LENGTHS)], rmse[len(POLE_LENGTHS) :]
 
 
-def ppo_dr_config():
-    """PPO^DR's config (``configs/paper_cartpole_ppo_dr_*.yaml``; the intended absolute randomisation first), or
-    None in a build without it."""
-    found = common.repo_configs("paper_cartpole_ppo_dr_*.yaml")
-    preferred = [p for p in found if "absolute" in p.name or "intended" in p.name]
-    return (preferred or found or [None])[0]
+def method_config(method: str, overrides=()):
+    """``(algo, cfg)`` that trains ``method`` (``ppo``, ``ppo_dr``, ``rarl``, ``rap``) with ``overrides``
+    (``"training.ALGO.KEY=VALUE"``, applied last), or ``(algo, None)`` in a build without its config file."""
+    cfg = scg_jax.load_config(common.CONFIG_DIR / "cartpole.yaml")
+    if method not in METHOD_SETTINGS:
+        return method, scg_jax.load_config(cfg, list(overrides))
+    algo, name, keys = METHOD_SETTINGS[method]
+    found = common.repo_configs(name)
+    return algo, (common.with_method(cfg, found[0], keys, overrides) if found else None)
 
 
 def controllers(ctx, seed: int, budget: dict, env, params, env10, params10):
-    """``{method: (controller, env, params)}`` for one seed, and the methods not available in this build."""
+    """``{method: (controller, env, params)}`` for one seed, the methods not available in this build, and
+    ``{method: error}`` for those whose training or loading failed (reported, not raised)."""
     cfg = scg_jax.load_config(common.CONFIG_DIR / "cartpole.yaml")
     out = {"lqr": (make_controller("lqr", env, params, cfg.controllers["lqr"]), env, params)}
-    missing = []
-    train = {"ppo": ("ppo", cfg), "rap": ("rap", None), "rarl": ("rarl", None), "ppo_dr": ("ppo", None)}
+    missing, failed = [], {}
     for method, steps in budget["rl_steps"].items():
-        algo, train_cfg = train[method]
-        if method in ("rap", "rarl"):
-            train_cfg = scg_jax.load_config(common.CONFIG_DIR / "cartpole.yaml", ADVERSARY)
-        if method == "ppo_dr":
-            path = ppo_dr_config()
-            train_cfg = None if path is None else scg_jax.load_config(path)
-        if train_cfg is None or not common.learner_available(algo):
-            missing.append(method)
+        try:
+            algo, train_cfg = method_config(method, budget.get("overrides", {}).get(method, ()))
+            if train_cfg is None or not common.learner_available(algo):
+                missing.append(method)
+                continue
+            policy, _ = common.train_policy(ctx, algo, train_cfg, seed, steps, env, params)
+        except Exception as error:  # one method's failure is reported in its claims, the rest still run
+            failed[method] = common.failure_text(error)
+            ctx.log(f"  {method} failed: {failed[method]}")
             continue
-        policy, _ = common.train_policy(ctx, algo, train_cfg, seed, steps, env, params)
         out[method] = (policy, env, params)
     if budget["gp_mpc"] is not None:
-        directory, _ = common.learn_gp_mpc(ctx, "cartpole", GP_MPC_RATE, seed, 1.5, budget["gp_mpc"])
-        out["gp_mpc"] = (common.load_gp_mpc(directory, env10, params10), env10, params10)
-    return out, missing
+        try:
+            directory, _ = common.learn_gp_mpc(ctx, "cartpole", GP_MPC_RATE, seed, 1.5, budget["gp_mpc"])
+            out["gp_mpc"] = (common.load_gp_mpc(directory, env10, params10), env10, params10)
+        except Exception as error:
+            failed["gp_mpc"] = common.failure_text(error)
+            ctx.log(f"  gp_mpc failed: {failed['gp_mpc']}")
+    return out, missing, failed
 
 
 def run(ctx: common.Context) -> common.Section:
     budget = ctx.budget(PROFILES)
     _, env, params = common.load("cartpole", EVAL)
     _, env10, params10 = common.load("cartpole", EVAL + GP_MPC_RATE)
-    lengths, noise, missing = {}, {}, set()
+    lengths, noise, missing, failed = {}, {}, set(), {}
     for seed in ctx.seeds:
-        methods, absent = controllers(ctx, seed, budget, env, params, env10, params10)
+        methods, absent, broken = controllers(ctx, seed, budget, env, params, env10, params10)
         missing |= set(absent)
+        failed.update(broken)
         for name, (controller, e, p) in methods.items():
-            with ctx.step(f"seed {seed}: {name}, both sweeps in one evaluation"):
-                by_length, by_noise = sweep(e, p, controller, jax.random.key(6161 + seed), budget["episodes"])
+            try:
+                with ctx.step(f"seed {seed}: {name}, both sweeps in one evaluation"):
+                    by_length, by_noise = sweep(e, p, controller, jax.random.key(6161 + seed), budget["episodes"])
+            except Exception as error:
+                failed[name] = common.failure_text(error)
+                ctx.log(f"  {name} failed: {failed[name]}")
+                continue
             lengths.setdefault(name, []).append(by_length)
             noise.setdefault(name, []).append(by_noise)
-    lengths = {name: np.mean(runs, axis=0) for name, runs in lengths.items()}
-    noise = {name: np.mean(runs, axis=0) for name, runs in noise.items()}
+    lengths = {name: np.mean(runs, axis=0) for name, runs in lengths.items() if name not in failed}
+    noise = {name: np.mean(runs, axis=0) for name, runs in noise.items() if name not in failed}
 
     section = common.Section(NAME, TITLE)
     rows = [{"sweep": "pole_length", "value": v, **{m: float(r[i]) for m, r in lengths.items()}}
@@ -132,7 +153,8 @@ def run(ctx: common.Context) -> common.Section:
         axis.grid(alpha=0.3)
         axis.legend(fontsize=7)
     section.files.append(common.save_figure(figure, ctx.out / "robustness.png"))
-    section.claims = claims(lengths, noise, missing, ctx.profile)
+    section.claims = claims(lengths, noise, missing, ctx.profile, failed)
+    section.notes += [f"{name} not measured: {error}" for name, error in sorted(failed.items())]
     if missing:
         section.notes.append(f"method {', '.join(sorted(missing))} not available in this build")
     section.notes.append(
@@ -146,12 +168,18 @@ def _mean_at(values: dict, name: str, grid, points) -> float:
     return float(np.mean([values[name][grid.index(p)] for p in points]))
 
 
-def claims(lengths: dict, noise: dict, missing: set, profile: str) -> list[common.Claim]:
-    out = []
-    lq = noise["lqr"]
-    rises = lq[-1] > lq[NOISE_STDS.index(1.0)] > lq[0]
-    out.append(common.claim("RMSE rises with the input noise σ (LQR)", bool(rises),
-                            ", ".join(f"σ={s:g}: {v:.4f}" for s, v in zip(NOISE_STDS, lq, strict=True))))  # fmt: skip
+def claims(lengths: dict, noise: dict, missing: set, profile: str, failed: dict | None = None) -> list[common.Claim]:
+    """The claims of the figure; a method in ``missing`` makes a claim ``UNAVAILABLE``, one in ``failed``
+    (``{method: error}``) ``NOT_MEASURED`` with the error."""
+    out, failed = [], dict(failed or {})
+    text = "RMSE rises with the input noise σ (LQR)"
+    if "lqr" in noise:
+        lq = noise["lqr"]
+        rises = lq[-1] > lq[NOISE_STDS.index(1.0)] > lq[0]
+        measured = ", ".join(f"σ={s:g}: {v:.4f}" for s, v in zip(NOISE_STDS, lq, strict=True))
+        out.append(common.claim(text, bool(rises), measured))
+    else:
+        out.append(common.claim(text, None, f"not measured: lqr failed: {failed.get('lqr', 'not run')}"))
 
     def need(*names):
         return [n for n in names if n not in lengths]
@@ -160,6 +188,9 @@ def claims(lengths: dict, noise: dict, missing: set, profile: str) -> list[commo
         unavailable = [n for n in names if n in missing]
         if unavailable:
             return common.claim(text, None, "", missing=unavailable)
+        broken = [n for n in names if n in failed]
+        if broken:
+            return common.claim(text, None, "not measured: " + "; ".join(f"{n} failed: {failed[n]}" for n in broken))
         return common.claim(text, None, f"{', '.join(need(*names))} not run in the {profile} profile")
 
     text = "PPO^DR is more robust to pole length than PPO (mean RMSE over l = 0.75, 1.25, 1.65 m)"
