@@ -8,7 +8,12 @@ import pytest
 
 from scg_algorithms import ppo
 from scg_algorithms.ppo_lagrangian import Config, combine_advantages, make_learner, multiplier_update
-from scg_algorithms.ppo_lagrangian.train import cost_gae
+from scg_algorithms.ppo_lagrangian.train import (
+    center_advantages,
+    cost_gae,
+    multiplier_adam_update,
+    multiplier_optimizer,
+)
 from scg_algorithms.rl.config import parse_learner_config
 from scg_jax.config import load_config, make_from_config
 from tests.rl_helpers import tiny_ppo
@@ -24,6 +29,31 @@ def test_multiplier_update_worked_numbers():
     lam = jnp.array([0.5, 0.001, 0.0001, 0.2])
     cost = jnp.array([0.03, 0.0, 0.0, jnp.nan])
     np.testing.assert_allclose(multiplier_update(lam, cost, 0.01, 0.035), [0.5007, 0.00065, 0.0, 0.2], rtol=1e-5)
+
+
+def test_multiplier_adam_update_worked_numbers():
+    # Adam's first step is lr * g / |g| (bias-corrected moments m = g, v = g^2, eps negligible) against the gradient
+    # g = -(J_c - d): over the limit lambda rises by lr whatever J_c - d is, under it it falls by lr (floored at 0).
+    lr, d = 0.035, 0.01
+    for lam, cost, expected in [(0.5, 0.3, 0.535), (0.5, 0.011, 0.535), (0.5, 0.0, 0.465), (0.01, 0.0, 0.0)]:
+        state = multiplier_optimizer(lr).init(jnp.float32(lam))
+        new, state = multiplier_adam_update(jnp.float32(lam), state, jnp.float32(cost), d, lr)
+        np.testing.assert_allclose(new, expected, rtol=1e-4, atol=1e-6)
+    # Second step, same sign: m and v of two equal gradients give again a step of lr: 0.5 -> 0.535 -> 0.57.
+    state = multiplier_optimizer(lr).init(jnp.float32(0.5))
+    lam, state = multiplier_adam_update(jnp.float32(0.5), state, jnp.float32(0.3), d, lr)
+    lam, state = multiplier_adam_update(lam, state, jnp.float32(0.3), d, lr)
+    np.testing.assert_allclose(lam, 0.57, rtol=1e-4)
+    # No measurement (NaN): lambda and Adam's moments unchanged.
+    kept, kept_state = multiplier_adam_update(lam, state, jnp.float32(jnp.nan), d, lr)
+    assert float(kept) == float(lam)
+    jax.tree.map(lambda a, b: np.testing.assert_array_equal(a, b), kept_state, state)
+
+
+def test_cost_advantages_are_centred_not_scaled():
+    # (0, 0, 0, 0.4) -> mean 0.1 subtracted, the spread kept: (-0.1, -0.1, -0.1, 0.3); standardising would give
+    # (-0.577, -0.577, -0.577, 1.732) whatever the violations' size.
+    np.testing.assert_allclose(center_advantages(jnp.array([0.0, 0.0, 0.0, 0.4])), [-0.1, -0.1, -0.1, 0.3], atol=1e-7)
 
 
 def test_combined_advantage_worked_numbers():
@@ -82,11 +112,13 @@ def _runner(learner, env_params):
 def constraint_runs():
     # The constraint task: the tiny untrained policies violate on about a third of their steps, so the cost
     # critic and cost advantages are exercised in every run. A limit of 1 (every step in violation) is above
-    # anything reachable: from 0 the multiplier stays 0; from 5 it decreases by lambda_lr (1 - J_c) an iteration.
+    # anything reachable: from 0 the multiplier stays 0 (default Adam rule); from 5, with the plain ascent rule
+    # (lambda_optimizer: sgd), it decreases by lambda_lr (1 - J_c) an iteration.
     env, params = make_from_config(load_config(CONFIG, CHEAP))
     plain = _runner(ppo.make_learner(TINY, env), params)()
     run = _runner(make_learner({**TINY, "cost_limit": 1.0, "lambda_lr": 0.5}, env), params)
-    return plain, run(), run(multiplier=5.0)
+    sgd = _runner(make_learner({**TINY, "cost_limit": 1.0, "lambda_lr": 0.5, "lambda_optimizer": "sgd"}, env), params)
+    return plain, run(), sgd(multiplier=5.0)
 
 
 def test_with_the_multiplier_at_zero_learning_is_exactly_ppo(constraint_runs):

@@ -10,6 +10,8 @@ from scg_algorithms.ppo.config import Config as PPOConfig
 from scg_algorithms.rl.config import check_fields
 
 COST_LIMIT_UNITS = ("fraction", "per_episode")
+LAMBDA_OPTIMIZERS = ("adam", "sgd")
+COST_ADVANTAGE_MODES = ("center", "standardize")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -25,6 +27,19 @@ class Config(PPOConfig):
     )
     lagrange_init: float = option(0.0, "initial Lagrange multiplier (>= 0)")
     lambda_lr: float = option(0.035, "step size of the multiplier's projected gradient ascent")
+    lambda_optimizer: str = option(
+        "adam",
+        "adam: Adam on the loss -lambda (J_c - d), then lambda clipped at 0 (OmniSafe's rule: steps of about "
+        "lambda_lr whatever the size of J_c - d, so lambda falls as fast as it rose); sgd: "
+        "lambda <- max(0, lambda + lambda_lr (J_c - d))",
+        choices=LAMBDA_OPTIMIZERS,
+    )
+    cost_advantage: str = option(
+        "center",
+        "how the cost advantages are normalised per minibatch (with normalize_advantages): center subtracts their "
+        "mean only (OmniSafe), so rare violations give small advantages; standardize also divides by their std",
+        choices=COST_ADVANTAGE_MODES,
+    )
     cost_gamma: float = option(0.99, "discount of the cost returns")
     cost_gae_lambda: float = option(0.95, "GAE lambda of the cost advantages")
     termination_cost: str = option(

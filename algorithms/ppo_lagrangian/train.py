@@ -5,12 +5,14 @@ The learner is ``scg_algorithms.ppo``'s skeleton with a ``Variant``:
 - a cost critic ``V_c`` (same shape as the value network, its own Adam and gradient clip so PPO's updates are
   untouched) fitted to the cost returns of ``out.cost`` (1 at a step in violation), with cost GAE
   (``cost_gamma``, ``cost_gae_lambda``);
-- once per rollout, before the SGD epochs, the multiplier takes a projected gradient-ascent step
-  ``lambda <- max(0, lambda + lambda_lr (J_c - d))`` (``multiplier_update``), where ``J_c`` is the rollout's fraction
-  of violating steps (``cost_limit_unit: fraction``) or the mean cost of the episodes finished in it
-  (``per_episode``; no step when none finished);
-- the actor's advantage is ``(A_r - lambda A_c) / (1 + lambda)`` (``combine_advantages``), each advantage
-  normalised per minibatch when ``normalize_advantages``.
+- once per rollout, before the SGD epochs, the multiplier takes one step towards ``J_c = d``, where ``J_c`` is the
+  rollout's fraction of violating steps (``cost_limit_unit: fraction``) or the mean cost of the episodes finished in
+  it (``per_episode``; no step when none finished): an Adam step on ``-lambda (J_c - d)`` clipped at 0
+  (``lambda_optimizer: adam``, OmniSafe's rule, ``multiplier_adam_update``) or the projected ascent step
+  ``lambda <- max(0, lambda + lambda_lr (J_c - d))`` (``sgd``, ``multiplier_update``);
+- the actor's advantage is ``(A_r - lambda A_c) / (1 + lambda)`` (``combine_advantages``); with
+  ``normalize_advantages`` the reward advantages are standardised per minibatch and the cost advantages centred
+  (``cost_advantage: center``, OmniSafe's choice) or standardised (``standardize``).
 
 With ``lambda`` 0 throughout (the limit never reached, ``lagrange_init`` 0) the actor and critic receive exactly
 PPO's updates from exactly PPO's random numbers: the parameters equal plain PPO's bit for bit.
@@ -40,6 +42,30 @@ def multiplier_update(multiplier, cost_estimate, cost_limit, lr):
     ``cost_estimate`` (no measurement) leaves it unchanged."""
     stepped = jnp.maximum(0.0, multiplier + lr * (cost_estimate - cost_limit))
     return jnp.where(jnp.isnan(cost_estimate), multiplier, stepped)
+
+
+def multiplier_optimizer(lr: float) -> optax.GradientTransformation:
+    """Adam on the multiplier (OmniSafe's ``Lagrange``), for ``multiplier_adam_update``."""
+    return optax.adam(lr)
+
+
+def multiplier_adam_update(multiplier, opt_state, cost_estimate, cost_limit, lr):
+    """One Adam step on the loss ``-lambda (J_c - d)`` (gradient ``-(J_c - d)``), then ``lambda`` clipped at 0:
+    ``(multiplier, opt_state)``. Adam's steps are about ``lr`` long whatever the size of ``J_c - d``, so a multiplier
+    raised by early violations falls as fast once the cost is under the limit (plain ascent falls by at most
+    ``lr d`` per step). A NaN ``cost_estimate`` leaves both unchanged."""
+    grad = -(cost_estimate - cost_limit)
+    updates, stepped_state = multiplier_optimizer(lr).update(jnp.where(jnp.isnan(grad), 0.0, grad), opt_state)
+    stepped = jnp.maximum(0.0, multiplier + updates)
+    skip = jnp.isnan(cost_estimate)
+    opt_state = jax.tree.map(lambda old, new: jnp.where(skip, old, new), opt_state, stepped_state)
+    return jnp.where(skip, multiplier, stepped), opt_state
+
+
+def center_advantages(advantages):
+    """``A - mean(A)``: the cost advantages' normalisation with ``cost_advantage: center`` (their scale is kept, so
+    a minibatch with few violations gives small cost advantages instead of unit-variance noise)."""
+    return advantages - jnp.mean(advantages)
 
 
 def combine_advantages(reward_advantages, cost_advantages, multiplier):
@@ -89,8 +115,10 @@ def make_learner(config, env) -> Learner:
 
     def init_aux(key, params):
         critic_params = cost_critic.init(key, jnp.zeros((1, env.observation_size)))
+        multiplier = jnp.asarray(config.lagrange_init, jnp.float32)
         return {
-            "multiplier": jnp.asarray(config.lagrange_init, jnp.float32),
+            "multiplier": multiplier,
+            "multiplier_opt_state": multiplier_optimizer(config.lambda_lr).init(multiplier),
             "cost_critic": critic_params,
             "cost_opt_state": cost_optimizer.init(critic_params),
         }
@@ -100,7 +128,13 @@ def make_learner(config, env) -> Learner:
             cost_estimate = jnp.mean(traj.cost)
         else:
             cost_estimate = jnp.where(episode["episodes_finished"] > 0, episode["episode_cost"], jnp.nan)
-        multiplier = multiplier_update(aux["multiplier"], cost_estimate, config.cost_limit, config.lambda_lr)
+        multiplier_opt_state = aux["multiplier_opt_state"]
+        if config.lambda_optimizer == "adam":
+            multiplier, multiplier_opt_state = multiplier_adam_update(
+                aux["multiplier"], multiplier_opt_state, cost_estimate, config.cost_limit, config.lambda_lr
+            )
+        else:
+            multiplier = multiplier_update(aux["multiplier"], cost_estimate, config.cost_limit, config.lambda_lr)
         cost_values = cost_value(aux["cost_critic"], traj.obs)
         next_cost_values = cost_value(aux["cost_critic"], traj.next_obs)
         cost_advantages, cost_returns = cost_gae(
@@ -113,13 +147,16 @@ def make_learner(config, env) -> Learner:
             "cost_value": flat(cost_values),
         }
         metrics = {"lagrange_multiplier": multiplier, "cost_estimate": cost_estimate}
-        return {**aux, "multiplier": multiplier}, data, metrics
+        return {**aux, "multiplier": multiplier, "multiplier_opt_state": multiplier_opt_state}, data, metrics
 
     def advantages(aux, mb):
         reward_adv, cost_adv = mb["advantages"], mb["cost_advantages"]
         if config.normalize_advantages:
             reward_adv = losses.normalize_advantages(reward_adv)
-            cost_adv = losses.normalize_advantages(cost_adv)
+            if config.cost_advantage == "center":
+                cost_adv = center_advantages(cost_adv)
+            else:
+                cost_adv = losses.normalize_advantages(cost_adv)
         return combine_advantages(reward_adv, cost_adv, aux["multiplier"])
 
     value_clip = config.value_clip_eps if config.value_clip_eps > 0 else None
