@@ -1,5 +1,5 @@
 """The scale-out options of ``rollout``, ``eval`` and ``train``: ``--devices`` (the env copies over several
-devices, ``scg_jax.sharding``) and, for ``eval``, ``--distributed`` (one job over several processes/hosts)."""
+devices, ``scg_jax.sharding``) and, for ``eval`` and ``train``, ``--distributed`` (one job over several processes/hosts)."""
 
 from __future__ import annotations
 
