@@ -187,12 +187,7 @@ def run_train(args: argparse.Namespace, console) -> int:
     except ValueError as error:
         raise UsageError(str(error)) from None
     mesh = make_mesh(args, cfg)
-    distributed = jax.process_count() > 1
-    if distributed and mesh.devices.size != jax.device_count():
-        raise UsageError(
-            f"argument --devices: a --distributed run spans the {jax.device_count()} devices of its "
-            f"{jax.process_count()} processes; use all (the default with --distributed), not {args.devices}"
-        )
+    distributed = jax.process_count() > 1  # a mesh over every process's devices (make_mesh checks)
     check_batch(mesh, getattr(config, "num_envs", 1), f"--set training.{args.algo}.num_envs")
     if distributed:  # the final evaluation's episodes are spread over the processes' devices too
         check_batch(mesh, args.eval_episodes, "--eval-episodes")

@@ -5,6 +5,7 @@ Two ``scg-jax eval --distributed`` (or ``train --distributed``) processes with 2
 all copies.
 """
 
+import argparse
 import csv
 import json
 import os
@@ -17,13 +18,17 @@ import jax
 import numpy as np
 import pytest
 from flax import serialization
+from jax.sharding import Mesh
 
 import scg_jax
 from scg_algorithms.evaluation import evaluate
 from scg_algorithms.lqr import make_lqr
-from scg_algorithms.rl.training import RUN_FILES
-from scg_cli import main
-from tests.rl_helpers import set_options
+from scg_algorithms.ppo import make_learner
+from scg_algorithms.rl.training import RUN_FILES, run_training
+from scg_cli import main, scale
+from scg_cli.common import UsageError
+from scg_jax.sharding import BATCH_AXIS
+from tests.rl_helpers import set_options, tiny_ppo
 
 ROOT = Path(__file__).resolve().parents[1]
 EPISODES = 8
@@ -162,3 +167,18 @@ def test_two_process_training_equals_a_single_process_run(two_process_training):
         np.testing.assert_allclose(policy[name], reference[name], rtol=1e-4, atol=1e-6, err_msg=name)
     evaluation, reference = (json.loads((f / "metrics.json").read_text())["evaluation"] for f in (out, single))
     np.testing.assert_allclose(evaluation["per_episode"]["return"], reference["per_episode"]["return"], rtol=1e-4)
+
+
+def test_a_multi_process_mesh_must_hold_every_process_devices(monkeypatch, tmp_path):
+    # As seen from a process of a 2-process job with 4 devices in all: a mesh of 1 device leaves a process out.
+    monkeypatch.setattr(jax, "process_count", lambda: 2)
+    monkeypatch.setattr(jax, "device_count", lambda: 4)
+    args = argparse.Namespace(devices="1")
+    with pytest.raises(UsageError, match=r"--devices: a --distributed job spans the 4 devices of its 2 processes"):
+        scale.make_mesh(args, None)
+    env = scg_jax.make("cartpole", episode_len_sec=0.2)
+    learner = make_learner(tiny_ppo(total_env_steps=128, num_epochs=1, num_minibatches=1), env)
+    one_device = Mesh(np.asarray(jax.local_devices()[:1]), (BATCH_AXIS,))
+    with pytest.raises(ValueError, match=r"mesh: a run over 2 processes needs a mesh over all 4 devices"):
+        run_training(learner, env, env.default_params, jax.random.key(0), tmp_path, progress=False, mesh=one_device)
+    assert not any(tmp_path.iterdir())  # refused before writing anything
