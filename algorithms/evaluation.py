@@ -394,7 +394,7 @@ def _score(name, trajectory, timing, per_step, per_batch_step, num_episodes) -> 
     return Evaluation(name, summary, per_episode, trajectory, timing)
 
 
-def make_evaluator(env, build_controller, num_episodes: int, *, batched_params: bool = False):
+def make_evaluator(env, build_controller, num_episodes: int, *, batched_params: bool = False, mesh=None):
     """An evaluation whose controller is rebuilt from traced values, for evaluating a learner as it trains.
 
     ``evaluate`` compiles once per controller object; a learner's policy changes every iteration, so here the
@@ -404,6 +404,9 @@ def make_evaluator(env, build_controller, num_episodes: int, *, batched_params: 
     Args:
         env: the environment. build_controller: ``build_controller(controller_params) -> JaxController``, traced.
         num_episodes: copies, one episode each. batched_params: ``params`` has a leading copy axis.
+        mesh: ``scg_jax.sharding.make_mesh(devices)``: the copies are laid out over its devices (and processes:
+            then every process calls ``evaluate_fn`` with the same arguments, a collective, and gets every copy's
+            results), ``controller_params`` replicated; ``num_episodes`` must divide evenly. ``None``: one device.
 
     Returns:
         ``evaluate_fn(controller_params, key, params) -> Evaluation`` (no compute-time measurement), with the same
@@ -411,6 +414,10 @@ def make_evaluator(env, build_controller, num_episodes: int, *, batched_params: 
     """
     num_episodes = int(num_episodes)
     axis = _params_axis(batched_params)
+    if mesh is not None:
+        from scg_jax import sharding
+
+        sharding.check_divisible(num_episodes, mesh, "num_episodes")
 
     def run(controller_params, env_keys, ctrl_keys, params):
         controller = build_controller(controller_params)
@@ -421,9 +428,15 @@ def make_evaluator(env, build_controller, num_episodes: int, *, batched_params: 
 
     def evaluate_fn(controller_params, key, params) -> Evaluation:
         env_keys, ctrl_keys = _copy_keys(key, num_episodes)
+        if mesh is not None:  # as in evaluate: the copies split over the devices, the rest held whole on each
+            env_keys, ctrl_keys = sharding.shard_batch((env_keys, ctrl_keys), mesh)
+            params = sharding.shard_batch(params, mesh) if batched_params else sharding.replicate(params, mesh)
+            controller_params = sharding.replicate(controller_params, mesh)
         start = time.perf_counter()
         records, x_final, x_ref = jax.block_until_ready(run_jit(controller_params, env_keys, ctrl_keys, params))
         timing = {"run_s": time.perf_counter() - start}
+        if mesh is not None:  # every process gets every copy's records (a collective over the processes)
+            records, x_final, x_ref = sharding.to_host((records, x_final, x_ref))
         trajectory = {name: np.swapaxes(np.asarray(value), 0, 1) for name, value in records.items()}
         trajectory["x"] = np.concatenate([trajectory["x"], np.asarray(x_final)[None]], axis=0)
         trajectory["x_ref"] = np.swapaxes(np.asarray(x_ref), 0, 1)

@@ -1,5 +1,6 @@
 """The scale-out options of ``rollout``, ``eval`` and ``train``: ``--devices`` (the env copies over several
-devices, ``scg_jax.sharding``) and, for ``eval``, ``--distributed`` (one job over several processes/hosts)."""
+devices, ``scg_jax.sharding``) and, for ``eval`` and ``train``, ``--distributed`` (one job over several processes or
+hosts)."""
 
 from __future__ import annotations
 
@@ -47,15 +48,24 @@ def start_distributed(args: argparse.Namespace) -> None:
 
 
 def make_mesh(args: argparse.Namespace, cfg):
-    """The mesh of ``--devices`` (else the config's ``devices``), or None for one device."""
+    """The mesh of ``--devices`` (else the config's ``devices``), or None for one device; a --distributed job's mesh
+    spans every device of every process (a UsageError otherwise)."""
+    import jax
+
     from scg_jax.sharding import make_mesh as mesh_of
     from scg_jax.validation import FieldError
 
     flag = getattr(args, "devices", None)
     try:
-        return mesh_of(flag if flag is not None else cfg.devices)
+        mesh = mesh_of(flag if flag is not None else cfg.devices)
     except FieldError as error:
         raise UsageError(f"argument --devices: {error.reason}" if flag is not None else str(error)) from None
+    if jax.process_count() > 1 and mesh.devices.size != jax.device_count():  # a process left out has nothing to step
+        raise UsageError(
+            f"argument --devices: a --distributed job spans the {jax.device_count()} devices of its "
+            f"{jax.process_count()} processes; use all (the default with --distributed), not {flag}"
+        )
+    return mesh
 
 
 def is_main_process() -> bool:

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from scg_cli.common import UsageError, add_env_arguments, check_output, jsonable, make_env, positive_int, summary_table
-from scg_cli.scale import add_scale_arguments, check_batch, make_mesh
+from scg_cli.scale import add_scale_arguments, check_batch, is_main_process, make_mesh, start_distributed
 from scg_jax.files import write_json
 
 LEARNERS = ("ppo", "sac", "gp_mpc", "learned_cbf", "safe_ppo", "ppo_lagrangian", "rarl", "rap")
@@ -77,7 +77,7 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
         help="gp_mpc, learned_cbf: the prior model has every inertial parameter times this factor (default: 1)",
     )
     parser.set_defaults(_train_parser=parser)
-    add_scale_arguments(parser)
+    add_scale_arguments(parser, distributed=True)
     return parser
 
 
@@ -157,6 +157,11 @@ def _write_metrics(args: argparse.Namespace, env, cfg, evaluation, **specific) -
 
 def run_train(args: argparse.Namespace, console) -> int:
     check_output(args.out, "dir")  # before any work: a file in the way or an unwritable location
+    if args.distributed and args.algo in ("gp_mpc", "learned_cbf"):
+        raise UsageError(
+            f"argument --distributed: {args.algo} trains in one process; --distributed is for the JAX learners"
+        )
+    start_distributed(args)  # before any JAX computation
     if args.algo == "gp_mpc":
         return _run_train_gp_mpc(args, console)
     if args.algo == "learned_cbf":
@@ -182,7 +187,10 @@ def run_train(args: argparse.Namespace, console) -> int:
     except ValueError as error:
         raise UsageError(str(error)) from None
     mesh = make_mesh(args, cfg)
+    distributed = jax.process_count() > 1  # a mesh over every process's devices (make_mesh checks)
     check_batch(mesh, getattr(config, "num_envs", 1), f"--set training.{args.algo}.num_envs")
+    if distributed:  # the final evaluation's episodes are spread over the processes' devices too
+        check_batch(mesh, args.eval_episodes, "--eval-episodes")
     _check_train_folder(args)
     key = jax.random.key(args.seed)
     train_key, eval_key = jax.random.split(key)
@@ -202,6 +210,8 @@ def run_train(args: argparse.Namespace, console) -> int:
             mesh=mesh,
         )
     except TrainingInterrupted as stop:
+        if not is_main_process():
+            return 130
         resume = _train_command_line(args, resume=True, overwrite=False)
         if stop.checkpoint is None:
             message = f"interrupted before the first iteration completed; nothing saved. Start again with:\n{resume}"
@@ -216,10 +226,13 @@ def run_train(args: argparse.Namespace, console) -> int:
     except ValueError as error:  # a checkpoint that cannot be continued: names the settings that differ
         message = str(error)
         raise UsageError(f"argument --resume: {message.removeprefix('resume: ')}") from None
-    policy = load_policy(args.out, env, params)
+    policy = load_policy(args.out, env, params)  # every process: run_training returns once process 0 wrote it
     try:
-        with console.status(f"evaluating the trained policy on {args.eval_episodes} episodes"):
-            evaluation = evaluate(env, params, policy, eval_key, args.eval_episodes)
+        if distributed:  # a collective: every process evaluates its share of the episodes, process 0 reports
+            evaluation = evaluate(env, params, policy, eval_key, args.eval_episodes, mesh=mesh)
+        else:
+            with console.status(f"evaluating the trained policy on {args.eval_episodes} episodes"):
+                evaluation = evaluate(env, params, policy, eval_key, args.eval_episodes)
     except KeyboardInterrupt:
         console.print(
             f"interrupted during the final evaluation; the trained policy is saved in {args.out} (evaluate it with "
@@ -229,6 +242,8 @@ def run_train(args: argparse.Namespace, console) -> int:
             highlight=False,
         )
         return 130
+    if not is_main_process():  # process 0 writes metrics.json and reports
+        return 0
     _write_metrics(
         args, env, cfg, evaluation, hyperparameters=dataclasses.asdict(config), training=summary,
         device=str(jax.devices()[0]),

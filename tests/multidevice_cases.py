@@ -12,7 +12,8 @@ import pytest
 from jax.sharding import PartitionSpec as P
 
 import scg_jax
-from scg_algorithms.evaluation import evaluate
+from scg_algorithms.base import JaxController
+from scg_algorithms.evaluation import evaluate, make_evaluator
 from scg_algorithms.lqr import make_lqr
 from scg_algorithms.ppo import make_learner
 from scg_algorithms.rl.sharding import shard_runner_state
@@ -111,6 +112,28 @@ def test_sharded_evaluation_equals_the_single_device_one(cartpole, mesh):
         assert sharded.summary[name] == pytest.approx(single.summary[name], rel=1e-5, abs=1e-7)
     with pytest.raises(ValueError, match=r"num_episodes: 10 env copies do not split evenly over 4 devices"):
         evaluate(env, params, controller, jax.random.key(1), 10, measure_time=False, mesh=mesh)
+
+
+def test_sharded_evaluator_equals_the_single_device_one(cartpole, mesh):
+    env, params = cartpole
+    lqr = make_lqr(env, params)
+
+    def build(gain):  # the controller rebuilt from a traced value, as for a learner's weights
+        def act(ctrl_state, obs, step, reference):
+            return gain * lqr.act_fn(ctrl_state, obs, step, reference)[0], ctrl_state
+
+        return JaxController("scaled_lqr", lqr.reset_fn, act)
+
+    single = make_evaluator(env, build, NUM_ENVS)(jnp.float32(0.9), jax.random.key(2), params)
+    sharded_fn = make_evaluator(env, build, NUM_ENVS, mesh=mesh)
+    sharded = sharded_fn(jnp.float32(0.9), jax.random.key(2), params)
+    assert _max_difference(single.trajectory, sharded.trajectory) <= 1e-6
+    for name in ("rmse", "return", "failure_rate", "length"):
+        assert sharded.summary[name] == pytest.approx(single.summary[name], rel=1e-5, abs=1e-7)
+    other = sharded_fn(jnp.float32(0.5), jax.random.key(2), params)  # a new gain: no new compilation, new numbers
+    assert _max_difference(other.trajectory["x"], sharded.trajectory["x"]) > 1e-4
+    with pytest.raises(ValueError, match=r"num_episodes: 10 env copies do not split evenly over 4 devices"):
+        make_evaluator(env, build, 10, mesh=mesh)
 
 
 @pytest.fixture(scope="module")

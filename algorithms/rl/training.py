@@ -149,6 +149,40 @@ def _host_metrics(metrics: dict, n: int) -> dict[str, np.ndarray]:
     return out
 
 
+def _count(n: int, distributed: bool):
+    """The chunk length argument: a host integer over several processes (the same value on each, replicated by
+    ``jit``; a device array would sit on one process's device), a device scalar otherwise."""
+    return np.int32(n) if distributed else jnp.int32(n)
+
+
+def _from_process_0(value):
+    """Process 0's ``value`` (an int or bool) on every process (``broadcast_one_to_all``, a collective): decisions
+    taken from a process's own clock (chunk length, checkpoint due) must be the same everywhere, or the processes'
+    collectives would not pair up."""
+    from jax.experimental import multihost_utils
+
+    return multihost_utils.broadcast_one_to_all(np.asarray(value, dtype=np.int64)).item()
+
+
+def _barrier(name: str) -> None:
+    """Wait until every process has reached the barrier ``name``."""
+    from jax.experimental import multihost_utils
+
+    multihost_utils.sync_global_devices(name)
+
+
+def _gather_state(tree):
+    """Every leaf of a (sharded, multi-process) pytree as a numpy array of its global value on every process;
+    typed PRNG keys as their raw ``uint32`` data (what checkpoints store anyway). A collective."""
+    from scg_jax.sharding import to_host
+
+    def raw(leaf):
+        is_key = isinstance(leaf, jax.Array) and jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key)
+        return jax.random.key_data(leaf) if is_key else leaf
+
+    return to_host(jax.tree.map(raw, tree))
+
+
 def _scalar(value):
     """A metric entry as a Python int (integer dtypes: exact) or float."""
     return int(value) if np.issubdtype(np.asarray(value).dtype, np.integer) else float(value)
@@ -363,7 +397,14 @@ def run_training(
             an exception it raises stops the run (KeyboardInterrupt: as Ctrl-C).
         mesh: ``scg_jax.sharding.make_mesh(devices)``: the env copies of the runner state are laid out over its
             devices, networks and optimiser state replicated, and ``jit`` partitions collection and updates (the
-            gradient is the full batch's mean, all-reduced by the compiler). ``None``: one device. One process only.
+            gradient is the full batch's mean, all-reduced by the compiler). ``None``: one device. Several processes
+            (``scg_jax.sharding.initialize_distributed``): the mesh must hold every process's devices
+            (``make_mesh("all")``); every process calls ``run_training`` with the same arguments and steps the copies
+            on its own devices; the metrics are gathered once per chunk, the chunk lengths and checkpoint times are
+            process 0's (broadcast), the runner state is gathered to every process for a checkpoint, and only
+            process 0 writes files and shows progress (``out_dir`` on a shared filesystem for ``resume``: every
+            process reads the checkpoint). On Ctrl-C a multi-process run saves nothing new (the other processes
+            may not take part in a gather): its last periodic checkpoint stands.
 
     Returns:
         ``{"algo", "iterations", "env_steps", "total_time_s", "compile_time_s", "train_time_s",
@@ -390,11 +431,15 @@ def run_training(
         raise ValueError(f"progress_seconds: must be >= 0, got {progress_seconds!r}")
     if resume and overwrite:
         raise ValueError("resume, overwrite: give one of them (continue the run in out_dir, or replace it)")
+    distributed = mesh is not None and jax.process_count() > 1
     if mesh is not None:
         from scg_jax import sharding
 
-        if jax.process_count() > 1:
-            raise ValueError("mesh: run_training runs in one process; a multi-process mesh is for evaluate/rollouts")
+        if distributed and mesh.devices.size != jax.device_count():
+            raise ValueError(
+                f"mesh: a run over {jax.process_count()} processes needs a mesh over all {jax.device_count()} devices "
+                f"(make_mesh('all'), devices: all), got {mesh.devices.size}"
+            )
         num_envs = getattr(learner.config, "num_envs", None)
         if num_envs is not None:
             sharding.check_divisible(num_envs, mesh, f"training.{learner.name}.num_envs")
@@ -402,9 +447,10 @@ def run_training(
     key = raw_key(jnp.asarray(key))
 
     checkpoint_file = out_dir / f"{CHECKPOINT_NAME}.json"
+    main = not distributed or sharding.is_main_process()  # the one process that writes files
     existing = existing_run_files(out_dir)
     if existing and overwrite:
-        for name in existing:
+        for name in existing if main else ():
             (out_dir / name).unlink(missing_ok=True)
     elif existing and not (resume and checkpoint_file.exists()):
         action = "has no checkpoint to resume" if resume else "already holds a training run"
@@ -412,7 +458,10 @@ def run_training(
             f"out_dir: {out_dir} {action} ({', '.join(existing)}); "
             + ("use overwrite to replace it" if resume else "use resume to continue it or overwrite to replace it")
         )
-    out_dir.mkdir(parents=True, exist_ok=True)
+    if distributed:  # every process has looked at the folder before process 0 changes it
+        _barrier("scg_jax.run_training: folder checked")
+    if main:
+        out_dir.mkdir(parents=True, exist_ok=True)
 
     init = jax.jit(learner.init)
     iteration, elapsed_before, resumed_from, steps_at_start = 0, 0.0, None, 0
@@ -450,7 +499,7 @@ def run_training(
         if iteration < total:  # a finished run resumed has nothing to compile
             shardings = None if mesh is None else sharding.shardings_of(runner_state)
             runner = _make_chunk_runner(learner, max_chunk, shardings, mesh)
-            compiled = runner.lower(runner_state, params, jnp.int32(1)).compile()
+            compiled = runner.lower(runner_state, params, _count(1, distributed)).compile()
     except KeyboardInterrupt:  # Ctrl-C while compiling: nothing new to save
         saved = out_dir / f"{CHECKPOINT_NAME}.msgpack"
         raise TrainingInterrupted(out_dir, iteration, total, saved if saved.exists() else None) from None
@@ -464,12 +513,13 @@ def run_training(
         )
         names = metric_names
         header = ["iteration", "env_steps", "wall_time_s", *names]
-        old_header, rows = _read_csv_rows(csv_path, iteration) if resumed_from is not None else (None, [])
+        old_header, rows = _read_csv_rows(csv_path, iteration) if resumed_from is not None and main else (None, [])
         if old_header is not None and old_header != header:
             rows = []
-        _write_csv(csv_path, header, rows)
+        if main:
+            _write_csv(csv_path, header, rows)
 
-    bar = _Progress(progress, total, iteration, learner.name, progress_seconds)
+    bar = _Progress(progress and main, total, iteration, learner.name, progress_seconds)
     run_start = time.perf_counter()
     # A resumed run that is already complete runs no iteration: it reports the checkpoint's last metrics.
     last_metrics: dict = resumed_metrics
@@ -488,8 +538,12 @@ def run_training(
             if checkpoint_every is not None:
                 next_checkpoint = (iteration // checkpoint_every + 1) * checkpoint_every
                 n = min(n, next_checkpoint - iteration)
+            if distributed:  # every process runs the same chunk (its collectives pair up): process 0's timing decides
+                n = int(_from_process_0(n))
             t0 = time.perf_counter()
-            new_state, metrics = compiled(runner_state, params, jnp.int32(n))
+            new_state, metrics = compiled(runner_state, params, _count(n, distributed))
+            if distributed:  # one gather per chunk, a collective of every process
+                metrics = sharding.to_host(metrics)
             metrics = _host_metrics(metrics, n)  # waits for the chunk
             dt = time.perf_counter() - t0
             per_iteration = dt / n
@@ -498,7 +552,7 @@ def run_training(
             )
             now = time.perf_counter()
             elapsed = elapsed_before + now - start
-            if csv:
+            if csv and main:
                 rows = [_format_row(iteration + i + 1, elapsed, names, metrics, i) for i in range(n)]
                 with csv_path.open("a", newline="") as file:
                     csv_lib.writer(file, lineterminator="\n").writerows(rows)
@@ -519,13 +573,20 @@ def run_training(
                 if checkpoint_every is not None
                 else now - last_checkpoint_time >= checkpoint_seconds
             )
+            if distributed and checkpoint_every is None:  # a gather every process must join: process 0's clock decides
+                due = bool(_from_process_0(due))
             if due or iteration >= total:
-                _save_runner(out_dir, learner, config, env_config, runner_state, iteration, last_metrics, elapsed)
+                state_to_save = _gather_state(runner_state) if distributed else runner_state
+                if main:
+                    _save_runner(out_dir, learner, config, env_config, state_to_save, iteration, last_metrics, elapsed)
                 saved_iteration, last_checkpoint_time = iteration, time.perf_counter()
             if on_chunk is not None:
                 on_chunk(iteration)
     except KeyboardInterrupt:
         bar.stop()
+        if distributed:  # saving would gather over processes that may not all have stopped: the last checkpoint stands
+            saved = out_dir / f"{CHECKPOINT_NAME}.msgpack"
+            raise TrainingInterrupted(out_dir, saved_iteration, total, saved if saved.exists() else None) from None
         if iteration > saved_iteration:
             elapsed = elapsed_before + time.perf_counter() - start
             _save_runner(out_dir, learner, config, env_config, runner_state, iteration, last_metrics, elapsed)
@@ -540,29 +601,34 @@ def run_training(
         bar.stop()
 
     policy_params = learner.policy_params(runner_state)
+    if distributed:
+        policy_params = _gather_state(policy_params)
     stats = find_obs_stats(policy_params)
     env_steps = int(last_metrics.get("env_steps", steps_at_start))
-    save_checkpoint(
-        out_dir,
-        POLICY_NAME,
-        policy_params,
-        {
-            "algo": learner.name,
-            "config": config,
-            "env_config": env_config,
-            "system": env.system.name,
-            "task": env.task,
-            "obs_size": int(env.observation_size),
-            "action_size": int(env.action_size),
-            "obs_normalizer": None if stats is None else json_ready(stats._asdict()),
-            "iterations": iteration,
-            "env_steps": env_steps,
-        },
-    )
-    if csv:
-        plot_learning_curve(
-            csv_path, out_dir / CURVE_NAME, rmse_label=rmse_label(env, params), ctrl_freq=float(env.ctrl_freq)
+    if main:
+        save_checkpoint(
+            out_dir,
+            POLICY_NAME,
+            policy_params,
+            {
+                "algo": learner.name,
+                "config": config,
+                "env_config": env_config,
+                "system": env.system.name,
+                "task": env.task,
+                "obs_size": int(env.observation_size),
+                "action_size": int(env.action_size),
+                "obs_normalizer": None if stats is None else json_ready(stats._asdict()),
+                "iterations": iteration,
+                "env_steps": env_steps,
+            },
         )
+        if csv:
+            plot_learning_curve(
+                csv_path, out_dir / CURVE_NAME, rmse_label=rmse_label(env, params), ctrl_freq=float(env.ctrl_freq)
+            )
+    if distributed:  # every process returns once the files are written (a caller may read them next)
+        _barrier("scg_jax.run_training: files written")
     total_s = time.perf_counter() - start
     run_s = time.perf_counter() - run_start
     session_steps = env_steps - steps_at_start
