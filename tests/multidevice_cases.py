@@ -16,6 +16,8 @@ from scg_algorithms.base import JaxController
 from scg_algorithms.evaluation import evaluate, make_evaluator
 from scg_algorithms.lqr import make_lqr
 from scg_algorithms.ppo import make_learner
+from scg_algorithms.rl.collector import ActOutput, collect, init_collector
+from scg_algorithms.rl.envs import make_train_env
 from scg_algorithms.rl.sharding import shard_runner_state
 from scg_algorithms.rl.training import run_training
 from scg_jax import sharding
@@ -134,6 +136,33 @@ def test_sharded_evaluator_equals_the_single_device_one(cartpole, mesh):
     assert _max_difference(other.trajectory["x"], sharded.trajectory["x"]) > 1e-4
     with pytest.raises(ValueError, match=r"num_episodes: 10 env copies do not split evenly over 4 devices"):
         make_evaluator(env, build, 10, mesh=mesh)
+
+
+def test_sharded_collection_reduces_the_observation_statistics_without_gathering(cartpole, mesh):
+    """The normaliser's statistics of the (T, N, obs) buffer, N sharded, are local sums plus an all-reduce of
+    (obs_size,) partial sums. Flattening the buffer to (T*N, obs) first has no sharded layout, and the compiled
+    collection then all-gathered the whole buffer to every device (and reduced it on each)."""
+    env, params = cartpole
+    train_env = make_train_env(env, NUM_ENVS)
+    state = init_collector(train_env, jax.random.key(2), params)
+
+    def act(obs, key):
+        noise = 0.3 * jax.random.normal(key, (obs.shape[0], 1))
+        return ActOutput(jnp.clip(-0.2 * obs[:, :1] + noise, -1.0, 1.0), {})
+
+    def run(state):
+        return collect(train_env, params, state, act, jax.random.key(3), 20)[0]
+
+    single = jax.jit(run)(state)
+    placed = shard_runner_state(state, mesh)
+    compiled = jax.jit(run, out_shardings=sharding.shardings_of(placed)).lower(placed).compile()
+    hlo = compiled.as_text()
+    assert "all-gather" not in hlo and "all-to-all" not in hlo
+    assert "all-reduce" in hlo  # the statistics and episode means are global
+    sharded = compiled(placed)
+    assert float(sharded.obs_stats.count) == 20 * NUM_ENVS
+    assert _max_difference(single, sharded) <= 1e-5
+    assert sharded.obs.sharding.spec == P(sharding.BATCH_AXIS)
 
 
 @pytest.fixture(scope="module")

@@ -62,6 +62,11 @@ def test_running_stats_are_accurate_in_float32_far_from_zero():
     np.testing.assert_allclose(stats.var, seen.var(axis=0), rtol=1e-2)
 
 
+def test_running_stats_refuse_a_batch_of_another_size():
+    with pytest.raises(ValueError, match=r"batch of shape \(5, 3\) does not end in the statistics' size 2"):
+        update_stats(init_stats(2), jnp.zeros((5, 3)))
+
+
 def test_running_stats_flatten_leading_axes_and_normalize():
     rng = np.random.default_rng(2)
     rollout = rng.normal([1.0, -3.0], [2.0, 0.5], size=(16, 8, 2)).astype(np.float32)  # (T, N, obs)

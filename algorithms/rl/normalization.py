@@ -8,6 +8,7 @@ their concatenation, without keeping the data. Before the first update ``mean = 
 
 from __future__ import annotations
 
+import math
 from typing import Any, NamedTuple
 
 import jax.numpy as jnp
@@ -32,15 +33,22 @@ def init_stats(size: int, dtype=jnp.float32) -> RunningStats:
 
 
 def update_stats(stats: RunningStats, batch) -> RunningStats:
-    """Merge ``batch`` (B, size) (or any (..., size), flattened) into ``stats``.
+    """Merge ``batch`` (B, size) (or any (..., size): every leading axis counts as samples) into ``stats``.
 
     With ``n_a = count``, ``n_b = B``, ``d = mean_b - mean_a``, ``n = n_a + n_b``:
     ``mean = mean_a + d n_b / n`` and ``var = (n_a var_a + n_b var_b + d^2 n_a n_b / n) / n``.
     """
-    batch = jnp.reshape(batch, (-1, stats.mean.shape[-1])).astype(stats.mean.dtype)
-    n_b = jnp.asarray(batch.shape[0], stats.count.dtype)
-    mean_b = jnp.mean(batch, axis=0)
-    var_b = jnp.mean(jnp.square(batch - mean_b), axis=0)
+    batch = jnp.asarray(batch, stats.mean.dtype)
+    if batch.shape[-1:] != stats.mean.shape[-1:]:
+        raise ValueError(f"batch of shape {batch.shape} does not end in the statistics' size {stats.mean.shape[-1]}")
+    # Reduce over the leading axes in place rather than reshaping to (B, size) first: when the env axis of a
+    # (T, N, size) batch is sharded over a mesh, merging T and N into one axis has no sharded layout, so GSPMD
+    # all-gathered the whole buffer to every device; a reduction over (T, N) is a local sum plus an all-reduce
+    # of (size,) partial sums.
+    axes = tuple(range(batch.ndim - 1))
+    n_b = jnp.asarray(math.prod(batch.shape[:-1]), stats.count.dtype)
+    mean_b = jnp.mean(batch, axis=axes)
+    var_b = jnp.mean(jnp.square(batch - mean_b), axis=axes)
     n_a = stats.count
     n = n_a + n_b
     delta = mean_b - stats.mean
