@@ -70,7 +70,7 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument(
         "--out", type=Path, required=True, metavar="FILE.json", help=f"metrics JSON to write{OUT_CHECKED}"
     )
-    add_scale_arguments(parser, distributed=True)
+    add_scale_arguments(parser)
     return parser
 
 

@@ -20,7 +20,7 @@ from scg_cli.common import (
     make_env,
     positive_int,
 )
-from scg_cli.scale import add_scale_arguments, check_batch, make_mesh
+from scg_cli.scale import add_scale_arguments, check_batch, is_main_process, make_mesh, start_distributed
 from scg_jax.files import write_atomic, write_json
 
 POLICIES = ("zero", "random", "linear")
@@ -107,14 +107,20 @@ def run_rollout(args: argparse.Namespace, console) -> int:
     from scg_jax.metrics import summarize, trajectory_metrics
     from scg_jax.plotting import plot_rollout
     from scg_jax.rollout import make_rollout
+    from scg_jax.sharding import to_host
 
+    start_distributed(args)  # before any JAX computation
     env, params, cfg = make_env(args)
     mesh = make_mesh(args, cfg)
     check_batch(mesh, args.num_envs, "--num-envs")
     out = args.out or Path("results", "rollout", f"{env.system.name}-{env.task}-{args.policy}-seed{args.seed}")
     check_output(out, "dir")
 
-    with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=console) as bar:
+    main = is_main_process()
+    progress = Progress(
+        SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=console, disable=not main
+    )
+    with progress as bar:
         stage = bar.add_task(f"linearising {env.system.name} and building the policy", total=1)
         policy, gain = _make_policy(env, params, args)
         bar.update(stage, completed=1)
@@ -131,6 +137,10 @@ def run_rollout(args: argparse.Namespace, console) -> int:
         traj = jax.block_until_ready(rollout(key, params))
         run_s = time.perf_counter() - start
         bar.update(stage, completed=1)
+        if jax.process_count() > 1:  # every copy's data on every process (a collective); process 0 writes it
+            traj = to_host(traj)
+            if not main:
+                return 0
 
         stage = bar.add_task(f"writing {out}", total=1)
         per_copy = trajectory_metrics(traj)

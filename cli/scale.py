@@ -1,6 +1,5 @@
 """The scale-out options of ``rollout``, ``eval`` and ``train``: ``--devices`` (the env copies over several
-devices, ``scg_jax.sharding``) and, for ``eval`` and ``train``, ``--distributed`` (one job over several processes or
-hosts)."""
+devices, ``scg_jax.sharding``) and ``--distributed`` (one job over several processes or hosts)."""
 
 from __future__ import annotations
 
@@ -9,16 +8,14 @@ import argparse
 from scg_cli.common import UsageError
 
 
-def add_scale_arguments(parser: argparse.ArgumentParser, distributed: bool = False) -> None:
-    """``--devices`` and, with ``distributed``, ``--distributed`` and its explicit coordinator options."""
+def add_scale_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--devices``, ``--distributed`` and its explicit coordinator options."""
     group = parser.add_argument_group("scale-out (docs/scaling.md)")
     group.add_argument(
         "--devices",
         metavar="all|N",
         help="lay the env copies out over all devices or the first N (overrides the config's devices; default: one)",
     )
-    if not distributed:
-        return
     group.add_argument(
         "--distributed",
         action="store_true",

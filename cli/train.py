@@ -77,7 +77,7 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
         help="gp_mpc, learned_cbf: the prior model has every inertial parameter times this factor (default: 1)",
     )
     parser.set_defaults(_train_parser=parser)
-    add_scale_arguments(parser, distributed=True)
+    add_scale_arguments(parser)
     return parser
 
 

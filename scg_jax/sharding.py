@@ -148,9 +148,12 @@ def shardings_of(tree):
 # --------------------------------------------------------------------------------------------- hosts
 def to_host(tree):
     """Every leaf as a numpy array of the *global* value: leaves spread over several processes are gathered
-    (``multihost_utils.process_allgather``, a collective: every process must call it), others copied."""
+    (``multihost_utils.process_allgather``, a collective: every process must call it), others copied. Typed PRNG
+    keys come back as their raw ``uint32`` data (``jax.random.key_data``)."""
 
     def gather(leaf):
+        if isinstance(leaf, jax.Array) and jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key):
+            leaf = jax.random.key_data(leaf)
         if isinstance(leaf, jax.Array) and not leaf.is_fully_addressable:
             from jax.experimental import multihost_utils
 

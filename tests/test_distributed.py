@@ -1,4 +1,5 @@
-"""Two-process ``jax.distributed`` evaluation and training on this machine (loopback coordinator, gloo collectives).
+"""Two-process ``jax.distributed`` evaluation, rollout and training on this machine (loopback coordinator, gloo
+collectives).
 
 Two ``scg-jax eval --distributed`` (or ``train --distributed``) processes with 2 simulated CPU devices each form one
 4-device mesh; each steps the copies on its own devices, and process 0 alone writes the result, with the metrics of
@@ -107,6 +108,41 @@ def test_the_result_holds_every_copy_and_equals_a_single_process_run(two_process
     single = evaluate(env, params, make_lqr(env, params), jax.random.key(3), EPISODES, measure_time=False)
     np.testing.assert_allclose(record["per_episode"]["return"], single.per_episode["return"], rtol=1e-5)
     np.testing.assert_allclose(record["rmse"], single.summary["rmse"], rtol=1e-5)
+
+
+# ------------------------------------------------------------------------------------------------ rollout
+_ROLLOUT = [
+    "rollout", "--system", "cartpole", "--policy", "random", "--num-envs", "8", "--episode-len", "1", "--seed", "3",
+]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def two_process_rollout(tmp_path_factory):
+    """``scg-jax rollout --distributed`` in two processes (4 devices), and the same rollout in this process."""
+    folder = tmp_path_factory.mktemp("distributed_rollout")
+    out, single = folder / "run", folder / "single"
+    single_code = []
+    codes, outputs = _run_both(
+        lambda port, i: _launch_process([*_ROLLOUT, "--out", str(out)], port, i),
+        meanwhile=lambda: single_code.append(main([*_ROLLOUT, "--out", str(single)])),
+    )
+    assert single_code == [0]
+    return out, single, codes, outputs
+
+
+def test_a_two_process_rollout_writes_every_copy_once_and_equals_one_process(two_process_rollout):
+    out, single, codes, outputs = two_process_rollout
+    assert codes == [0, 0], "\n".join(outputs)
+    assert sorted(p.name for p in out.iterdir()) == ["metrics.json", "rollout.npz", "rollout.png"]
+    assert "wrote" in outputs[0] and "wrote" not in outputs[1]  # only process 0 writes
+    # Random inputs: every copy's own noise, the same whichever device steps it (layout-independent keys).
+    with np.load(out / "rollout.npz") as sharded, np.load(single / "rollout.npz") as reference:
+        assert sharded["x"].shape == reference["x"].shape == (50, 8, 4)
+        for name in ("x", "x_final", "u", "reward"):
+            np.testing.assert_allclose(sharded[name], reference[name], rtol=1e-5, atol=1e-6, err_msg=name)
+        assert np.ptp(sharded["u"][:, :, 0], axis=1).max() > 0  # the copies really differ
+    record = json.loads((out / "metrics.json").read_text())
+    assert len(record["per_copy"]["return"]) == 8
 
 
 # ------------------------------------------------------------------------------------------------ training
