@@ -146,7 +146,7 @@ def claims(curves: dict, missing: set, profile: str) -> list[common.Claim]:
                 t_gp <= 0.1 * min(t_rl.values()),
                 f"GP-MPC within 10% of its best after {t_gp:.1f} s; "
                 + ", ".join(f"{m.upper()} after {t:.0f} s" for m, t in t_rl.items()),
-                "RL's convergence is judged within its own (short) budget in the quick profile",
+                "RL's convergence is judged within its own training budget (the profile's)",
             )
         )
         untrained = c["gp_mpc"][0][1]
