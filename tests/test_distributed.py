@@ -82,6 +82,19 @@ def _run_both(launch, meanwhile=None) -> tuple[list[int], list[str]]:
     return [p.returncode for p in processes], outputs
 
 
+def _distributed_and_single(folder: Path, arguments: list[str]):
+    """``scg-jax ARGUMENTS --out folder/run --distributed`` in two processes, and ``--out folder/single`` in this
+    process meanwhile (compiling dominates all three): ``(run, single, exit codes, outputs)``."""
+    out, single = folder / "run", folder / "single"
+    single_code = []
+    codes, outputs = _run_both(
+        lambda port, i: _launch_process([*arguments, "--out", str(out)], port, i),
+        meanwhile=lambda: single_code.append(main([*arguments, "--out", str(single)])),
+    )
+    assert single_code == [0]
+    return out, single, codes, outputs
+
+
 @pytest.fixture(scope="module")
 def two_process_run(tmp_path_factory):
     folder = tmp_path_factory.mktemp("distributed")
@@ -119,15 +132,7 @@ _ROLLOUT = [
 @pytest.fixture(scope="module")
 def two_process_rollout(tmp_path_factory):
     """``scg-jax rollout --distributed`` in two processes (4 devices), and the same rollout in this process."""
-    folder = tmp_path_factory.mktemp("distributed_rollout")
-    out, single = folder / "run", folder / "single"
-    single_code = []
-    codes, outputs = _run_both(
-        lambda port, i: _launch_process([*_ROLLOUT, "--out", str(out)], port, i),
-        meanwhile=lambda: single_code.append(main([*_ROLLOUT, "--out", str(single)])),
-    )
-    assert single_code == [0]
-    return out, single, codes, outputs
+    return _distributed_and_single(tmp_path_factory.mktemp("distributed_rollout"), _ROLLOUT)
 
 
 def test_a_two_process_rollout_writes_every_copy_once_and_equals_one_process(two_process_rollout):
@@ -161,15 +166,7 @@ _TRAIN = [
 @pytest.fixture(scope="module")
 def two_process_training(tmp_path_factory):
     """``scg-jax train --distributed`` in two processes (4 devices), and the same run in this process (1 device)."""
-    folder = tmp_path_factory.mktemp("distributed_train")
-    out, single = folder / "run", folder / "single"
-    single_code = []  # the reference runs while the two processes do (compiling dominates all three)
-    codes, outputs = _run_both(
-        lambda port, i: _launch_process([*_TRAIN, "--out", str(out)], port, i),
-        meanwhile=lambda: single_code.append(main([*_TRAIN, "--out", str(single)])),
-    )
-    assert single_code == [0]
-    return out, single, codes, outputs
+    return _distributed_and_single(tmp_path_factory.mktemp("distributed_train"), _TRAIN)
 
 
 def _progress(folder: Path) -> dict[str, np.ndarray]:
