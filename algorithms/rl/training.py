@@ -171,18 +171,6 @@ def _barrier(name: str) -> None:
     multihost_utils.sync_global_devices(name)
 
 
-def _gather_state(tree):
-    """Every leaf of a (sharded, multi-process) pytree as a numpy array of its global value on every process;
-    typed PRNG keys as their raw ``uint32`` data (what checkpoints store anyway). A collective."""
-    from scg_jax.sharding import to_host
-
-    def raw(leaf):
-        is_key = isinstance(leaf, jax.Array) and jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key)
-        return jax.random.key_data(leaf) if is_key else leaf
-
-    return to_host(jax.tree.map(raw, tree))
-
-
 def _scalar(value):
     """A metric entry as a Python int (integer dtypes: exact) or float."""
     return int(value) if np.issubdtype(np.asarray(value).dtype, np.integer) else float(value)
@@ -576,7 +564,7 @@ def run_training(
             if distributed and checkpoint_every is None:  # a gather every process must join: process 0's clock decides
                 due = bool(_from_process_0(due))
             if due or iteration >= total:
-                state_to_save = _gather_state(runner_state) if distributed else runner_state
+                state_to_save = sharding.to_host(runner_state) if distributed else runner_state
                 if main:
                     _save_runner(out_dir, learner, config, env_config, state_to_save, iteration, last_metrics, elapsed)
                 saved_iteration, last_checkpoint_time = iteration, time.perf_counter()
@@ -602,7 +590,7 @@ def run_training(
 
     policy_params = learner.policy_params(runner_state)
     if distributed:
-        policy_params = _gather_state(policy_params)
+        policy_params = sharding.to_host(policy_params)  # typed keys as raw data, as checkpoints store them
     stats = find_obs_stats(policy_params)
     env_steps = int(last_metrics.get("env_steps", steps_at_start))
     if main:
