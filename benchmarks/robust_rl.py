@@ -5,8 +5,10 @@ Each method is trained for ``--seeds`` seeds (one jitted run ``vmap``-ed over th
 - PPO: ``configs/cartpole_stabilization.yaml`` (``training.ppo``);
 - PPO^DR: ``configs/paper_cartpole_ppo_dr_relative.yaml`` (the original's 0.6-1.5 m) and, with ``--dr absolute``
   or ``both``, ``..._absolute.yaml`` (0.1-1.0 m);
-- RARL: ``configs/paper_cartpole_rarl.yaml``; RAP: ``configs/paper_cartpole_rap.yaml`` (and each ``--rap-scale``
-  as an extra RAP run with that adversary scale on the action channel).
+- RARL: ``configs/paper_cartpole_rarl.yaml`` (the original's RA-L setting) and, as ``rarl_joint``,
+  ``configs/cartpole_rarl.yaml`` (the suite's: joint updates, 0.01 N);
+- RAP: ``configs/paper_cartpole_rap.yaml`` (and each ``--rap-scale`` as an extra RAP run with that adversary scale on
+  the action channel);
 
 every one with the same budget (``--steps``, env steps per seed). The deterministic policies are then evaluated by
 the harness (``scg_algorithms.evaluation.make_evaluator``, the policy as a controller) on the evaluation env: the
@@ -160,6 +162,7 @@ def main(argv=None) -> int:
     if args.dr in ("absolute", "both"):
         methods.append(("ppo_dr_absolute", "ppo", ROOT / "configs/paper_cartpole_ppo_dr_absolute.yaml", None))
     methods.append(("rarl", "rarl", ROOT / "configs/paper_cartpole_rarl.yaml", None))
+    methods.append(("rarl_joint", "rarl", ROOT / "configs/cartpole_rarl.yaml", None))
     methods.append(("rap", "rap", ROOT / "configs/paper_cartpole_rap.yaml", None))
     for scale in args.rap_scale:
         methods.append((f"rap_scale{scale:g}", "rap", ROOT / "configs/paper_cartpole_rap.yaml",
