@@ -406,7 +406,7 @@ def save_figure(figure, path: Path) -> str:
     import matplotlib.pyplot as plt
 
     buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=110)
+    figure.savefig(buffer, format="png", dpi=110, bbox_inches="tight")  # keep axis labels inside the image
     plt.close(figure)
     write_atomic(path, lambda f: f.write(buffer.getvalue()))
     return path.name
