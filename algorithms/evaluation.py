@@ -23,7 +23,6 @@ Compute time per step (``compute_time_per_step_s``) is the controller's time per
 from __future__ import annotations
 
 import time
-import weakref
 from collections.abc import Mapping
 from typing import Any, NamedTuple
 
@@ -34,6 +33,7 @@ import numpy as np
 from scg_algorithms.base import Reference
 from scg_algorithms.safety_filters.base import check_system, filter_record, intervention_metrics, is_filtered
 from scg_jax import metrics as metrics_lib
+from scg_jax.caching import CompileCache
 
 # The keys of the JSON the CLI writes, in the paper's order: summary name -> metrics.summarize name.
 SUMMARY_KEYS = {
@@ -155,25 +155,26 @@ def _replay_fn(env, controller):
 
 
 # Compiled closed loops and replays, so evaluating the same env and controller again (new key, new params of the
-# same shapes) does not compile again. Keyed weakly by the controller, so a controller's executables go with it;
-# envs compare by identity (the entry keeps its env alive, so the id cannot be reused while cached).
-_COMPILED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+# same shapes) does not compile again; an entry goes with its env or controller (scg_jax.caching's policy).
+_COMPILED = CompileCache(maxsize=32)
 
 
 def _compiled(kind: str, env, controller, axis, args) -> tuple[Any, float]:
     """``(executable, compile seconds)``; 0 s when it was compiled before for the same shapes."""
     # The layout is part of the executable: a sharded evaluation compiles apart from the single-device one.
     signature = jax.tree.map(lambda a: (jnp.shape(a), jnp.result_type(a), str(getattr(a, "sharding", None))), args)
-    cache_key = (kind, id(env), axis, str(jax.tree.structure(args)), str(signature))
-    entries = _COMPILED.setdefault(controller, {})
-    entry = entries.get(cache_key)
-    if entry is not None and entry[0] is env:
-        return entry[1], 0.0
-    build = _closed_loop_fn if kind == "loop" else _replay_fn
-    start = time.perf_counter()
-    executable = jax.jit(jax.vmap(build(env, controller), in_axes=(0, 0, axis))).lower(*args).compile()
-    entries[cache_key] = (env, executable)
-    return executable, time.perf_counter() - start
+    compile_s = 0.0
+
+    def build():
+        nonlocal compile_s
+        start = time.perf_counter()
+        loop_or_replay = _closed_loop_fn if kind == "loop" else _replay_fn
+        executable = jax.jit(jax.vmap(loop_or_replay(env, controller), in_axes=(0, 0, axis))).lower(*args).compile()
+        compile_s = time.perf_counter() - start
+        return executable
+
+    key = (kind, axis, str(jax.tree.structure(args)), str(signature))
+    return _COMPILED.get(key, build, owners=(env, controller)), compile_s
 
 
 def _evaluate_jax(env, params, controller, key, num_episodes, batched_params, measure_time, mesh=None):
@@ -215,15 +216,15 @@ def _evaluate_jax(env, params, controller, key, num_episodes, batched_params, me
 
 
 # --------------------------------------------------------------------------------------------- host path
-_HOST_FUNCTIONS: dict = {}
+_HOST_FUNCTIONS = CompileCache(maxsize=16)
 
 
 def _host_functions(env, batched_params: bool):
     """Jitted, vmapped ``reset``, ``step`` (from the physical input) and ``reference`` of ``env``, made once."""
-    cache_key = (id(env), batched_params)
-    entry = _HOST_FUNCTIONS.get(cache_key)
-    if entry is not None and entry[0] is env:
-        return entry[1]
+    return _HOST_FUNCTIONS.get(batched_params, lambda: _make_host_functions(env, batched_params), owners=(env,))
+
+
+def _make_host_functions(env, batched_params: bool):
     axis = _params_axis(batched_params)
 
     def step_one(state, u, params):
@@ -231,13 +232,11 @@ def _host_functions(env, batched_params: bool):
         info = {name: out.info[name] for name in _INFO_KEYS}
         return out.obs, out.state, out.reward, out.cost, out.terminated, out.truncated, info
 
-    functions = (
+    return (
         jax.jit(jax.vmap(env.reset, in_axes=(0, axis))),
         jax.jit(jax.vmap(step_one, in_axes=(0, 0, axis))),
         jax.jit(jax.vmap(env.reference, in_axes=(axis,)) if batched_params else env.reference),
     )
-    _HOST_FUNCTIONS[cache_key] = (env, functions)
-    return functions
 
 
 def _evaluate_host(env, params, controller, key, num_episodes, batched_params, progress):

@@ -34,7 +34,6 @@ from __future__ import annotations
 import math
 import os
 import threading
-import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,6 +45,7 @@ from matplotlib.colors import to_rgba
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
+from scg_jax.caching import CompileCache
 from scg_jax.video import MAX_GIF_FPS, SUFFIXES, write_gif, write_mp4
 
 __all__ = ["DRAWN_ARM", "SUFFIXES", "VIEWS", "animate", "animate_rollout_file", "animation_frames", "render_frame"]
@@ -640,41 +640,21 @@ _VIEW_FACTORIES = {
 }
 VIEWS = tuple(_VIEW_FACTORIES)
 """The views a ``System.view`` may name."""
-_SCENES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-_SCENES_LOCK = threading.Lock()
-
-
-def _env_cache(env) -> dict:
-    with _SCENES_LOCK:
-        cache = _SCENES.get(env)
-        if cache is None:
-            cache = _SCENES[env] = {}
-        return cache
+# A figure per env and size (drawing one costs more than the frames drawn on it) and the env's default params.
+_SCENES = CompileCache(maxsize=16)
 
 
 def _scene(env, width: int, height: int) -> _Scene:
-    cache = _env_cache(env)
-    with _SCENES_LOCK:
-        scene = cache.get((width, height))
-        if scene is None:
-            view = env.system.view
-            if view not in _VIEW_FACTORIES:
-                raise ValueError(
-                    f"render: system {env.system.name!r} asks for view {view!r}; allowed views are {', '.join(VIEWS)}"
-                )
-            scene = cache[(width, height)] = _Scene(_VIEW_FACTORIES[view](), width, height)
-        return scene
+    view = env.system.view
+    if view not in _VIEW_FACTORIES:
+        raise ValueError(
+            f"render: system {env.system.name!r} asks for view {view!r}; allowed views are {', '.join(VIEWS)}"
+        )
+    return _SCENES.get((width, height), lambda: _Scene(_VIEW_FACTORIES[view](), width, height), owners=(env,))
 
 
 def _default_params(env):
-    cache = _env_cache(env)
-    with _SCENES_LOCK:
-        params = cache.get("params")
-    if params is None:
-        params = env.default_params
-        with _SCENES_LOCK:
-            cache["params"] = params
-    return params
+    return _SCENES.get("params", lambda: env.default_params, owners=(env,))
 
 
 def _static(env, params, x_ref, title: str, reach: float) -> _Static:
