@@ -172,14 +172,3 @@ def check_fields(
     for name in closed_unit:
         if not 0.0 <= getattr(config, name) <= 1.0:
             raise ValueError(f"{path}.{name}: must be in [0, 1], got {getattr(config, name)!r}")
-
-
-def weight_diagonal(path: str, value, default, n: int):
-    """A diagonal weight option: ``value`` (n numbers, or ``None`` for ``default``) as a tuple of n floats >= 0."""
-    if value is None:
-        return tuple(float(v) for v in default)
-    if len(value) != n:
-        raise ValueError(f"{path}: expected {n} values, got {len(value)}")
-    if min(value) < 0:
-        raise ValueError(f"{path}: weights must be >= 0, got {list(value)}")
-    return tuple(value)
