@@ -112,3 +112,41 @@ def test_render_keeps_a_scene_per_env_without_keeping_the_env():
     del env
     gc.collect()
     assert ref() is None
+
+
+def test_learned_cbf_rounds_take_their_data_as_arguments():
+    """The blending episode and the held-out RMSE compile once and take the plant and the data as arguments: with
+    the plant equal to the filter's prior the barrier residual vanishes, with the true plant it does not, and both
+    run on one executable; the RMSE over any subset of an episode's rows is one executable too."""
+    from scg_algorithms.base import parse_options
+    from scg_algorithms.controller_setup import prior_step_fn
+    from scg_algorithms.safety_filters import learned_cbf
+    from scg_algorithms.safety_filters.uncertified import random_input
+
+    env = scg_jax.make(
+        "quadrotor_1d",
+        episode_len_sec=0.2,
+        init_state={"type": "uniform", "low": [0.5, -0.01], "high": [1.0, 0.01]},
+        constraints=[{"type": "bounded", "on": "state", "active_dims": [0], "low": [-10.0], "high": [1.5]}],
+    )
+    params = env.default_params
+    prior = scg_jax.prior_params(env, params, 1.5)
+    opts = parse_options(learned_cbf.Options, {"barrier": "ceiling", "hidden_sizes": [8]}, learned_cbf.PATH)
+    flt = learned_cbf.make_learned_cbf(env, prior, opts)
+    net_params = flt.params["correction"]
+    collect = learned_cbf._collector(env, flt, prior_step_fn(env, prior, "env"), random_input(env, prior))
+    keys = jax.random.split(jax.random.key(0), 4)
+    *_, residual_prior = collect(net_params, 0.0, keys, prior, flt.params)
+    x, u, valid, residual_true = collect(net_params, 0.0, keys, params, flt.params)
+    assert collect._cache_size() == 1
+    assert np.max(np.abs(residual_prior)) < 1e-3  # the prior's own step predicts its plant (barrier units/s)
+    # The true plant is lighter: under any thrust it climbs faster than predicted, closer to the ceiling (h smaller).
+    assert np.all(np.asarray(residual_true) < -0.01)
+
+    _, _, rmse = learned_cbf._trainer(learned_cbf._network(opts, 1, 1), 1, 1, opts)
+    x, u, r = (np.asarray(a).reshape(-1, a.shape[-1]) for a in (x, u, residual_true))
+    for mask in (np.arange(len(x)) % 2 == 0, np.arange(len(x)) < 5):
+        # The network starts at zero (the prior CBF), so the RMSE is that of the residual itself.
+        expected = np.sqrt(np.mean(np.square(r[mask])))
+        np.testing.assert_allclose(float(rmse(net_params, x, u, r, mask)), expected, rtol=1e-5)
+    assert rmse._cache_size() == 1
