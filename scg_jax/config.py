@@ -51,13 +51,8 @@ import yaml
 from scg_jax import validation as V
 from scg_jax.env import Env, EnvParams, make
 from scg_jax.env_config import (
-    AdversaryConfig,
     ConfigError,
-    ConstraintConfig,
-    DistributionConfig,
-    DisturbanceConfig,
     EnvConfig,
-    TrajectoryConfig,
     _field,
     _mapping_of,
     _optional,
@@ -66,15 +61,11 @@ from scg_jax.env_config import (
     _section,
 )
 
+# EnvConfig and its sections (TrajectoryConfig, DistributionConfig, ...) live in scg_jax.env_config.
 __all__ = [
-    "AdversaryConfig",
     "Config",
     "ConfigError",
-    "ConstraintConfig",
-    "DisturbanceConfig",
-    "DistributionConfig",
     "EnvConfig",
-    "TrajectoryConfig",
     "dump_config",
     "load_config",
     "make_from_config",

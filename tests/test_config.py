@@ -23,14 +23,9 @@ from scg_jax import disturbances as disturbances_lib
 from scg_jax import randomization
 from scg_jax.config import (
     SAFETY_FILTER_NAMES,
-    AdversaryConfig,
     Config,
     ConfigError,
-    ConstraintConfig,
-    DistributionConfig,
-    DisturbanceConfig,
     EnvConfig,
-    TrajectoryConfig,
     dump_config,
     load_config,
     make_from_config,
@@ -38,7 +33,15 @@ from scg_jax.config import (
 from scg_jax.constraints import ConstraintSpec
 from scg_jax.disturbances import DisturbanceSpec
 from scg_jax.env import TRAJECTORY_KEYS
-from scg_jax.env_config import _OPTION_DEFAULTS, TASKS
+from scg_jax.env_config import (
+    _OPTION_DEFAULTS,
+    TASKS,
+    AdversaryConfig,
+    ConstraintConfig,
+    DistributionConfig,
+    DisturbanceConfig,
+    TrajectoryConfig,
+)
 from scg_jax.randomization import DistributionSpec
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
