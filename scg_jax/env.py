@@ -669,49 +669,31 @@ def make(system, task: str = DEFAULT_TASK, **options) -> Env:
 
 def _make(cfg) -> Env:
     """``make`` of a checked ``EnvConfig``: the checks that need the system or several options; field paths are
-    relative to the config's ``env`` section."""
+    relative to the config's ``env`` section.
+
+    Each part below checks its options and returns ``(static, values)``: fields of the ``Env`` (structure) and
+    entries of its default ``EnvParams`` (numbers, as numpy).
+    """
     spec = get_system(cfg.system)
-    timing = _timing(cfg)
-    horizon = _task_options(cfg, spec)
-    physics = _physics(cfg, spec)
-    trajectory_static, trajectory = _trajectory(cfg, spec)
-    init_spec, init_values, physics_specs, physics_values = _randomization(cfg, spec)
-    constraint_specs, constraint_values = _constraints(cfg, spec, physics)
-    num_steps = round(timing["episode_len_sec"] * timing["ctrl_freq"])
-    channel_dims = {"action": spec.nu, "observation": spec.nx, "dynamics": spec.f_ext_dim}
-    disturbance_specs, disturbance_values = _disturbances(cfg, channel_dims, num_steps)
-    adversary_channel, adversary_scale = _adversary(cfg, channel_dims)
-    defaults = {
-        "physics": physics,
-        "Q": V.weight_matrix(spec.q_diag if cfg.Q is None else cfg.Q, "Q", spec.nx),
-        "R": V.weight_matrix(spec.r_diag if cfg.R is None else cfg.R, "R", spec.nu),
-        "goal": V.vector(spec.goal if cfg.goal is None else cfg.goal, "goal", spec.nx),
-        "goal_tolerance": V.positive(cfg.goal_tolerance, "goal_tolerance"),
-        "init_state": init_values,
-        "physics_randomization": physics_values,
-        "trajectory": trajectory,
-        "mse_weight": V.vector(spec.mse_weight if cfg.mse_weight is None else cfg.mse_weight, "mse_weight", spec.nx),
-        "constraints": constraint_values,
-        "violation_penalty": cfg.violation_penalty,
-        "disturbances": disturbance_values,
-        "adversary_scale": adversary_scale,
-    }
     # The options the env keeps as they were given.
     given = ("integrator", "action_mode", "reward_type", "done_on_out_of_bounds", "done_on_goal", "done_on_violation")
-    return Env(
-        system=spec,
-        task=cfg.task,
-        obs_goal_horizon=horizon,
-        init_state_spec=init_spec,
-        physics_randomization_specs=physics_specs,
-        constraint_specs=constraint_specs,
-        disturbance_specs=disturbance_specs,
-        adversary_channel=adversary_channel,
-        _default_params_numpy=defaults,
-        **timing,
-        **trajectory_static,
-        **{name: getattr(cfg, name) for name in given},
-    )
+    static = {"system": spec, "task": cfg.task, **_timing(cfg), "obs_goal_horizon": _task_options(cfg, spec)}
+    static.update({name: getattr(cfg, name) for name in given})
+    physics = _physics(cfg, spec)
+    num_steps = round(static["episode_len_sec"] * static["ctrl_freq"])
+    channel_dims = {"action": spec.nu, "observation": spec.nx, "dynamics": spec.f_ext_dim}
+    values = {"physics": physics}
+    for part_static, part_values in (
+        _trajectory(cfg, spec),
+        _randomization(cfg, spec),
+        _constraints(cfg, spec, physics),
+        _disturbances(cfg, channel_dims, num_steps),
+        _adversary(cfg, channel_dims),
+        ({}, _costs_and_goal(cfg, spec)),
+    ):
+        static.update(part_static)
+        values.update(part_values)
+    return Env(**static, _default_params_numpy=values)
 
 
 def _timing(cfg) -> dict:
@@ -761,13 +743,13 @@ def _physics_fields(spec: System) -> list[str]:
 
 
 def _trajectory(cfg, spec: System) -> tuple[dict, dict]:
-    """``({trajectory_shape, trajectory_plane}, trajectory values)``; stabilization keeps the system's default
-    values, unused, so that params have one structure per system."""
+    """The trajectory's shape and plane, and its values; stabilization keeps the system's default values, unused,
+    so that params have one structure per system."""
     if cfg.task != "tracking":
         if cfg.trajectory is not None:
             raise FieldError("trajectory", "only allowed with task 'tracking'")
         values = {"scale": spec.default_scale, "offset": np.asarray(spec.default_offset), "num_cycles": 1.0}
-        return {"trajectory_shape": None, "trajectory_plane": None}, values
+        return {"trajectory_shape": None, "trajectory_plane": None}, {"trajectory": values}
     given = cfg.trajectory
 
     def pick(name, default):  # a key left out of the trajectory section takes the system's default
@@ -780,12 +762,12 @@ def _trajectory(cfg, spec: System) -> tuple[dict, dict]:
         "offset": V.vector(pick("offset", spec.default_offset), "trajectory.offset", 2),
         "num_cycles": V.positive(pick("num_cycles", 1.0), "trajectory.num_cycles"),
     }
-    return static, values
+    return static, {"trajectory": values}
 
 
-def _randomization(cfg, spec: System):
-    """``(init_state spec, its values, {field: spec}, {field: values})`` of the initial state (default: the system's
-    uniform range) and of the randomised physical parameters."""
+def _randomization(cfg, spec: System) -> tuple[dict, dict]:
+    """The distributions of the initial state (default: the system's uniform range) and of the randomised physical
+    parameters."""
     init = cfg.init_state
     if init is None:
         init = DistributionConfig(type="uniform", low=spec.init_low.tolist(), high=spec.init_high.tolist())
@@ -799,11 +781,12 @@ def _randomization(cfg, spec: System):
         physics_specs[name], physics_values[name] = randomization.parse_distribution(
             f"physics_randomization.{name}", raw, (), positive=True, allow_relative=True
         )
-    return init_spec, init_values, physics_specs, physics_values
+    static = {"init_state_spec": init_spec, "physics_randomization_specs": physics_specs}
+    return static, {"init_state": init_values, "physics_randomization": physics_values}
 
 
-def _constraints(cfg, spec: System, physics) -> tuple[tuple, list]:
-    """``(constraint specs, their values)`` in option order, and the violation penalty checked."""
+def _constraints(cfg, spec: System, physics) -> tuple[dict, dict]:
+    """The constraints in option order and the violation penalty."""
     state_bounds = (spec.state_low, spec.state_high)
     input_bounds = tuple(np.asarray(b, dtype=float) for b in spec.input_bounds(physics))
     parsed = [
@@ -813,11 +796,12 @@ def _constraints(cfg, spec: System, physics) -> tuple[tuple, list]:
     penalty = cfg.violation_penalty
     if not penalty >= 0:
         raise FieldError("violation_penalty", f"must be >= 0 (it is subtracted from the reward), got {penalty:g}")
-    return tuple(p[0] for p in parsed), [p[1] for p in parsed]
+    static = {"constraint_specs": tuple(p[0] for p in parsed)}
+    return static, {"constraints": [p[1] for p in parsed], "violation_penalty": penalty}
 
 
 def _disturbances(cfg, channel_dims: dict, num_steps: int) -> tuple[dict, dict]:
-    """``({channel: specs}, {channel: values})`` of the channels that have disturbances."""
+    """The disturbances of the channels that have any."""
     specs, values = {}, {}
     for channel, entries in (cfg.disturbances or {}).items():
         if not entries:
@@ -830,13 +814,27 @@ def _disturbances(cfg, channel_dims: dict, num_steps: int) -> tuple[dict, dict]:
         ]
         specs[channel] = tuple(item[0] for item in items)
         values[channel] = [item[1] for item in items]
-    return specs, values
+    return {"disturbance_specs": specs}, {"disturbances": values}
 
 
-def _adversary(cfg, channel_dims: dict):
-    """``(channel, scale (dim,))`` of the adversary input, or ``(None, empty)`` without one."""
+def _adversary(cfg, channel_dims: dict) -> tuple[dict, dict]:
+    """The adversary input's channel and scale (dim,); no channel and an empty scale without an adversary."""
     if cfg.adversary is None:
-        return None, np.zeros(0)
+        return {"adversary_channel": None}, {"adversary_scale": np.zeros(0)}
     channel = cfg.adversary.channel
     scale = 1.0 if cfg.adversary.scale is None else cfg.adversary.scale
-    return channel, V.vector(scale, "adversary.scale", channel_dims[channel], broadcast=True)
+    return {"adversary_channel": channel}, {
+        "adversary_scale": V.vector(scale, "adversary.scale", channel_dims[channel], broadcast=True)
+    }
+
+
+def _costs_and_goal(cfg, spec: System) -> dict:
+    """The cost weights, the goal and its tolerance, and the weights of the reported tracking error."""
+    nx, nu = spec.nx, spec.nu
+    return {
+        "Q": V.weight_matrix(spec.q_diag if cfg.Q is None else cfg.Q, "Q", nx),
+        "R": V.weight_matrix(spec.r_diag if cfg.R is None else cfg.R, "R", nu),
+        "goal": V.vector(spec.goal if cfg.goal is None else cfg.goal, "goal", nx),
+        "goal_tolerance": V.positive(cfg.goal_tolerance, "goal_tolerance"),
+        "mse_weight": V.vector(spec.mse_weight if cfg.mse_weight is None else cfg.mse_weight, "mse_weight", nx),
+    }

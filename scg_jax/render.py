@@ -748,7 +748,10 @@ def _as_rollout(xs, x_ref, dt):
 class _Animation:
     """A rollout prepared for drawing: ``frame(k)`` renders control step ``k``; ``steps`` are the drawn ones."""
 
-    def __init__(self, env, xs, params, x_ref, max_copies, width, height, stride, trail, dt):
+    def __init__(
+        self, env, xs, params=None, x_ref=None, *, max_copies: int = 8, width: int = 480, height: int = 480,
+        stride: int | None = None, trail: float = 1.0, dt: float | None = None,
+    ):  # fmt: skip
         self.width, self.height = _check_size(width, height)
         if isinstance(max_copies, bool) or not float(max_copies).is_integer() or max_copies < 1:
             raise ValueError(f"max_copies: expected a positive integer, got {max_copies!r}")
@@ -805,41 +808,16 @@ class _Animation:
         return (self.frame(k) for k in self.steps)
 
 
-def animation_frames(
-    env,
-    xs,
-    params=None,
-    x_ref=None,
-    max_copies: int = 8,
-    width: int = 480,
-    height: int = 480,
-    *,
-    stride: int | None = None,
-    trail: float = 1.0,
-    dt: float | None = None,
-):
+def animation_frames(env, xs, params=None, x_ref=None, **options):
     """The frames ``animate`` writes, as an iterator of (height, width, 3) uint8 arrays (for video loggers).
 
-    Arguments as for ``animate``; one frame per ``stride`` control steps, ``len(range(0, T, stride))`` in all.
+    Arguments and ``options`` (``max_copies``, ``width``, ``height``, ``stride``, ``trail``, ``dt``) as for
+    ``animate``; one frame per ``stride`` control steps, ``len(range(0, T, stride))`` in all.
     """
-    return iter(_Animation(env, xs, params, x_ref, max_copies, width, height, stride, trail, dt))
+    return iter(_Animation(env, xs, params, x_ref, **options))
 
 
-def animate(
-    env,
-    xs,
-    path,
-    params=None,
-    x_ref=None,
-    fps=None,
-    max_copies: int = 8,
-    width: int = 480,
-    height: int = 480,
-    *,
-    stride: int | None = None,
-    trail: float = 1.0,
-    dt: float | None = None,
-) -> Path:
+def animate(env, xs, path, params=None, x_ref=None, fps=None, **options) -> Path:
     """Write an animation of a rollout as a GIF or an MP4 (by the suffix of ``path``).
 
     Args:
@@ -855,11 +833,13 @@ def animate(
         x_ref: (T + 1, nx) reference to draw (default: the dict's ``x_ref``, else ``env.reference(params)`` for
             tracking). Tracking also marks the current reference point (open circle).
         fps: frames per second (default: real time, ``1 / (dt * stride)``, i.e. ``env.ctrl_freq / stride``).
-        max_copies: draw the first this many copies, overlaid with some transparency.
-        width, height: frame size in pixels.
-        stride: draw every ``stride``-th step (default: the smallest stride that keeps real time at <= 50 fps).
-        trail: seconds of past positions drawn behind each copy (pole tip for the cart-pole); 0 for none.
-        dt: seconds per row of ``xs`` (default: the dict's ``dt``, else ``env.dt``).
+        options: keywords of the drawing.
+            max_copies: draw the first this many copies, overlaid with some transparency (default 8).
+            width, height: frame size in pixels (default 480 x 480).
+            stride: draw every ``stride``-th step (default: the smallest stride that keeps real time at <= 50 fps).
+            trail: seconds of past positions drawn behind each copy (pole tip for the cart-pole); 0 for none
+                (default 1).
+            dt: seconds per row of ``xs`` (default: the dict's ``dt``, else ``env.dt``).
 
     Returns:
         ``path`` as a ``Path``.
@@ -871,7 +851,7 @@ def animate(
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
         raise ValueError(f"path: unsupported suffix {path.suffix!r}; allowed suffixes are {', '.join(SUFFIXES)}")
-    animation = _Animation(env, xs, params, x_ref, max_copies, width, height, stride, trail, dt)
+    animation = _Animation(env, xs, params, x_ref, **options)
     fps = 1.0 / (animation.dt * animation.stride) if fps is None else float(fps)
     if not (np.isfinite(fps) and fps > 0):
         raise ValueError(f"fps: expected a positive number, got {fps!r}")

@@ -22,6 +22,13 @@ _IGNORE_REPLICATED = pytest.mark.filterwarnings("ignore:jax.device_put_replicate
 _THETA_CONSTRAINT = [{"type": "abs_bound", "on": "state", "active_dims": [2], "bound": 0.2}]
 
 
+def _constrained_cartpole(**options):
+    """The cart-pole with normalised actions, the exponential reward and the constraint |theta| <= 0.2 rad."""
+    return scg_jax.make(
+        "cartpole", action_mode="normalized", reward_type="exponential", constraints=_THETA_CONSTRAINT, **options
+    )
+
+
 def _run(wrapped, num_envs, actions, key=1):
     """Reset a wrapped (batched) env and apply ``actions`` (num_steps, num_envs, nu); return the states."""
     state = jax.jit(wrapped.reset)(jax.random.split(jax.random.PRNGKey(key), num_envs))
@@ -227,14 +234,8 @@ def test_randomization_fn_gives_each_slot_its_own_params():
 
 
 def test_brax_evaluator_reports_the_episode_cost_and_reward_of_the_functional_env():
-    env = scg_jax.make(
-        "cartpole",
-        action_mode="normalized",
-        reward_type="exponential",
-        episode_len_sec=1.0,
-        init_state=[0.0, 0.0, 0.15, 0.0],  # deterministic: falls through |theta| = 0.2 and on to a crash
-        constraints=_THETA_CONSTRAINT,
-    )
+    # Deterministic: falls through |theta| = 0.2 and on to a crash.
+    env = _constrained_cartpole(episode_len_sec=1.0, init_state=[0.0, 0.0, 0.15, 0.0])
     params = env.default_params
     traj = scg_jax.rollout(env, params, lambda *_: jnp.zeros(1), jax.random.key(0), num_envs=1, auto_reset=False)
     done = np.asarray(traj.terminated[:, 0] | traj.truncated[:, 0])
@@ -268,13 +269,7 @@ def test_brax_evaluator_reports_the_episode_cost_and_reward_of_the_functional_en
 
 
 def _learning_env():
-    env = scg_jax.make(
-        "cartpole",
-        action_mode="normalized",
-        reward_type="exponential",
-        episode_len_sec=2.0,
-        constraints=_THETA_CONSTRAINT,
-    )
+    env = _constrained_cartpole(episode_len_sec=2.0)
     return env, BraxEnv(env)
 
 
