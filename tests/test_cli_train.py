@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import scg_algorithms.rl.training as training
+from scg_algorithms.progress import Progress
 from scg_cli import main
 from tests.rl_helpers import set_options
 
@@ -67,7 +68,7 @@ def test_ctrl_c_prints_the_checkpoint_and_the_resume_command(tmp_path, capsys, m
     out = tmp_path / "run"
 
     def interrupted(learner, env, params, key, out_dir, **options):
-        assert options["checkpoint_seconds"] == 5.0 and options["progress_seconds"] == 2.0
+        assert options["checkpoint_seconds"] == 5.0 and isinstance(options["progress"], Progress)
         raise training.TrainingInterrupted(out_dir, 1, 2, out_dir / "checkpoint.msgpack")
 
     monkeypatch.setattr(training, "run_training", interrupted)
