@@ -153,7 +153,7 @@ def run_train(args: argparse.Namespace, console) -> int:
     if not is_main_process():  # process 0 writes metrics.json and reports
         return 0
     console.print(summary_table(_title(result, args), {result.evaluation.controller: result.evaluation.summary}))
-    console.print(f"wrote {args.out}/{', '.join(result.files)}")
+    _print_line(console, f"wrote {args.out}/{', '.join(result.files)}")
     return 0
 
 
