@@ -50,27 +50,21 @@ def _jax(name: str, module: str, summary: str) -> LearnerSpec:
     return LearnerSpec(name, module, summary, section=f"training.{name}")
 
 
+def _on_prior(name: str, module: str, summary: str, unit: str, loads_as: str = "controller") -> LearnerSpec:
+    """A learner on a prior model with a learning loop of its own (its kind is its name); its options are in
+    ``controllers.<name>`` (a controller) or ``safety_filters.<name>`` (a filter)."""
+    section = f"{'controllers' if loads_as == 'controller' else 'safety_filters'}.{name}"
+    return LearnerSpec(name, module, summary, kind=name, unit=unit, section=section, loads_as=loads_as)
+
+
 LEARNERS: dict[str, LearnerSpec] = {
     spec.name: spec
     for spec in (
         _jax("ppo", "scg_algorithms.ppo", "PPO, clipped policy gradient"),
         _jax("sac", "scg_algorithms.sac", "soft actor-critic"),
-        LearnerSpec(
-            name="gp_mpc",
-            module="scg_algorithms.gp_mpc.controller",
-            summary="GP-MPC, a GP of the prior model's error learned in rounds",
-            kind=GP_MPC,
-            unit="round",
-            section="controllers.gp_mpc",
-        ),
-        LearnerSpec(
-            name="learned_cbf",
-            module="scg_algorithms.safety_filters.learned_cbf",
-            summary="a CBF safety filter with a learned model correction",
-            kind=LEARNED_CBF,
-            unit="episode",
-            section="safety_filters.learned_cbf",
-            loads_as="filter",
+        _on_prior("gp_mpc", "scg_algorithms.gp_mpc.controller", "GP-MPC, a GP of the prior's error", "round"),
+        _on_prior(
+            "learned_cbf", "scg_algorithms.safety_filters.learned_cbf", "a learned CBF filter", "episode", "filter"
         ),
         _jax("safe_ppo", "scg_algorithms.safe_ppo", "PPO with a safety layer"),
         _jax("ppo_lagrangian", "scg_algorithms.ppo_lagrangian", "PPO-Lagrangian, a constrained MDP"),

@@ -215,21 +215,13 @@ def _train_gp_mpc(job: _Job) -> TrainResult:
         raise FieldError(f"{PATH}.rounds", f"train needs at least one round, got {opts.rounds}")
     own = (f"{RUN_NAME}.json", f"{RUN_NAME}.npz", "learning_curve.csv")
     prior = _prior_folder_checks(job, own)
-    job.progress.note(
-        f"gp_mpc on the {env.system.name} ({env.task}), prior scale {job.prior_scale:g}: {opts.rounds} rounds of "
-        f"{opts.train_episodes} episodes, each evaluated on {opts.eval_episodes}"
-    )
-
-    def report(entry):
-        job.progress.update(entry["round"], entry)
-        job.progress.note(
-            f"round {entry['round']}: {entry['data_seconds']:.1f} s of data, RMSE {entry['rmse']:.4f} "
-            f"(std {entry['rmse_std']:.4f}), failure rate {entry['failure_rate']:.2f}, "
-            f"fit {entry['fit_s']:.1f} s, evaluation {entry['eval_s']:.1f} s"
-        )
-
-    with running(job.progress, Task("gp_mpc", opts.rounds, 0, "round")):
-        result = learn(env, params, prior, opts, progress=report)
+    intro = (f"gp_mpc on the {env.system.name} ({env.task}), prior scale {job.prior_scale:g}: {opts.rounds} rounds "
+             f"of {opts.train_episodes} episodes, each evaluated on {opts.eval_episodes}")  # fmt: skip
+    result = _learning_loop(job, opts.rounds, intro, lambda report: learn(env, params, prior, opts, progress=report),
+                            lambda entry: f"round {entry['round']}: {entry['data_seconds']:.1f} s of data, RMSE "
+                            f"{entry['rmse']:.4f} (std {entry['rmse_std']:.4f}), failure rate "
+                            f"{entry['failure_rate']:.2f}, fit {entry['fit_s']:.1f} s, evaluation "
+                            f"{entry['eval_s']:.1f} s")  # fmt: skip
     save_run(job.out_dir, result, opts, system=env.system.name, prior_scale=job.prior_scale, extra=_provenance(job))
     write_learning_curve(job.out_dir, result.history, rmse_label(env, params))
     files = (*own[:2], "learning_curve.csv", "learning_curve.png")
@@ -247,20 +239,13 @@ def _train_learned_cbf(job: _Job) -> TrainResult:
     opts = parse_options(Options, {**dict(job.cfg.safety_filters.get("learned_cbf") or {}), "seed": job.seed}, PATH)
     own = (f"{RUN_NAME}.json", f"{RUN_NAME}.msgpack")
     prior = _prior_folder_checks(job, own)
-    job.progress.note(
-        f"learned_cbf on the {env.system.name}, prior scale {job.prior_scale:g}: {opts.num_episodes} blending "
-        f"episodes of {opts.num_copies} copies x {env.num_steps} steps"
-    )
-
-    def report(row):
-        job.progress.update(row["episode"], row)
-        job.progress.note(
-            f"episode {row['episode']}: {row['data_seconds']:.0f} s of data, violating steps "
-            f"{100 * row['violation_fraction']:.3f} %, interventions {100 * row['intervention_fraction']:.1f} %"
-        )
-
-    with running(job.progress, Task("learned_cbf", opts.num_episodes, 0, "episode")):
-        result = train_learned_cbf(env, params, prior, opts, progress=report)
+    intro = (f"learned_cbf on the {env.system.name}, prior scale {job.prior_scale:g}: {opts.num_episodes} blending "
+             f"episodes of {opts.num_copies} copies x {env.num_steps} steps")  # fmt: skip
+    result = _learning_loop(job, opts.num_episodes, intro,
+                            lambda report: train_learned_cbf(env, params, prior, opts, progress=report),
+                            lambda row: f"episode {row['episode']}: {row['data_seconds']:.0f} s of data, violating "
+                            f"steps {100 * row['violation_fraction']:.3f} %, interventions "
+                            f"{100 * row['intervention_fraction']:.1f} %")  # fmt: skip
     save_run(job.out_dir, result, system=env.system.name, prior_scale=job.prior_scale, extra=_provenance(job))
     controller = filtered(random_input(env, params), result.filter, env)
     files = (*own, "progress.csv", "learning_curve.png")
@@ -285,6 +270,21 @@ def _prior_folder_checks(job: _Job, own: tuple[str, ...]):
         what = f"a training run of another algorithm ({', '.join(others)})" if others and not mine else "a run"
         raise FieldError("out_dir", f"{job.out_dir} already holds {what}; pass {words['overwrite']} to replace it")
     return job.params if job.prior_scale == 1.0 else prior_params(job.env, job.params, job.prior_scale)
+
+
+def _learning_loop(job: _Job, total: int, intro: str, loop, line):
+    """``loop(report)`` (GP-MPC's rounds, the learned CBF's episodes) as the task ``<algo>`` counting ``total``
+    units, after the note ``intro``: each history entry it reports updates the count (``entry[unit]``) and becomes
+    the note ``line(entry)``."""
+    progress, unit = job.progress, job.spec.unit
+    progress.note(intro)
+
+    def report(entry):
+        progress.update(entry[unit], entry)
+        progress.note(line(entry))
+
+    with running(progress, Task(job.spec.name, total, 0, unit)):
+        return loop(report)
 
 
 def _evaluate_prior_learner(job: _Job, files, controller, opts, history) -> TrainResult:

@@ -8,11 +8,10 @@ from pathlib import Path
 from scg_cli.common import UsageError, check_output, positive_int
 from scg_cli.progress import add_progress_argument, console_progress
 
-PROFILES = ("tiny", "quick", "paper")
-
 
 def add_reproduce_parser(subparsers) -> argparse.ArgumentParser:
     from scg_experiments import RESULTS
+    from scg_experiments.common import PROFILES
 
     parser = subparsers.add_parser(
         "reproduce",

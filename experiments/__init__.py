@@ -11,12 +11,10 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+# name -> module, in the paper's order.
 RESULTS = {
-    "control_performance": "scg_experiments.control_performance",
-    "learning_efficiency": "scg_experiments.learning_efficiency",
-    "constraint_satisfaction": "scg_experiments.constraint_satisfaction",
-    "robustness": "scg_experiments.robustness",
-    "throughput": "scg_experiments.throughput",
+    name: f"scg_experiments.{name}"
+    for name in ("control_performance", "learning_efficiency", "constraint_satisfaction", "robustness", "throughput")
 }
 
 
