@@ -19,7 +19,7 @@ import numpy as np
 from scg_algorithms.progress import SILENT, Progress, Task
 
 
-def _positive_seconds(text: str) -> float:
+def positive_seconds(text: str) -> float:
     try:
         value = float(text)
     except ValueError:
@@ -33,7 +33,7 @@ def add_progress_argument(parser: argparse.ArgumentParser) -> None:
     """``--progress-interval SECONDS`` (default 10)."""
     parser.add_argument(
         "--progress-interval",
-        type=_positive_seconds,
+        type=positive_seconds,
         default=10.0,
         metavar="SECONDS",
         help="when stdout is not a terminal, print a progress line at least every this many seconds (default: 10)",

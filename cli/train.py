@@ -8,7 +8,7 @@ from pathlib import Path
 
 from scg_algorithms.learners import LEARNERS, learner_spec, prior_learners
 from scg_cli.common import UsageError, add_env_arguments, check_output, make_env, positive_int, summary_table
-from scg_cli.progress import _positive_seconds, add_progress_argument, console_progress
+from scg_cli.progress import add_progress_argument, console_progress, positive_seconds
 from scg_cli.scale import add_scale_arguments, is_main_process, make_mesh, start_distributed
 
 # train_run's arguments as this command's flags: in its error messages, and for the field a FieldError names.
@@ -59,7 +59,7 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
     run.add_argument("--overwrite", action="store_true", help="replace the run already in DIR")
     parser.add_argument(
         "--checkpoint-interval",
-        type=_positive_seconds,
+        type=positive_seconds,
         default=60.0,
         metavar="SECONDS",
         help="save a checkpoint every this many seconds of training (default: 60; also at the end and on Ctrl-C)",

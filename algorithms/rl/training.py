@@ -1,12 +1,13 @@
-"""The host driver of every JAX learner: compiled iterations in chunks, progress, CSV, checkpoints, final policy.
+"""The host driver of every JAX learner: compiled iterations in chunks, CSV, checkpoints, final policy, progress
+reported through callbacks (``scg_algorithms.progress``).
 
 A learner (``scg_algorithms.ppo.make_learner``, ``scg_algorithms.sac.make_learner``) is a ``Learner``: pure ``init`` and
 ``update`` functions over a runner state (a pytree holding everything: network and optimiser state, observation
 statistics, env states, PRNG key). ``run_training`` compiles ``update`` repeated ``n`` times inside one
 ``lax.fori_loop`` (``n`` is a traced argument, so one compilation serves every chunk length), runs chunks of about a
-second each so the progress bar moves, appends each iteration's metrics to ``progress.csv``, checkpoints the runner
-state, and saves the final policy. Because every chunk runs the same compiled iteration, the result does not depend
-on the chunking: a run resumed from a checkpoint is bit-identical to an uninterrupted one.
+second each so that progress is reported often, appends each iteration's metrics to ``progress.csv``, checkpoints
+the runner state, and saves the final policy. Because every chunk runs the same compiled iteration, the result does
+not depend on the chunking: a run resumed from a checkpoint is bit-identical to an uninterrupted one.
 
 Files written in ``out_dir``:
 
