@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from scg_algorithms.base import Reference
+from scg_algorithms.progress import Task, as_progress, running
 from scg_algorithms.safety_filters.base import check_system, filter_record, intervention_metrics, is_filtered
 from scg_jax import metrics as metrics_lib
 from scg_jax.caching import CompileCache
@@ -265,16 +266,7 @@ def _evaluate_host(env, params, controller, key, num_episodes, batched_params, p
     u_last = np.zeros((num_episodes, env.nu))
     act_times: list[float] = []
 
-    bar = None
-    if progress:
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-        bar = Progress(
-            TextColumn(f"{controller.name}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(), transient=True
-        )
-        bar.start()
-        task = bar.add_task("steps", total=num_steps)
-    try:
+    with running(progress, Task(f"evaluating {controller.name} on {num_episodes} episodes", num_steps, 0, "step")):
         for k in range(num_steps):
             obs_np = np.asarray(obs, dtype=np.float64)
             x_np = np.asarray(state.x)
@@ -307,13 +299,9 @@ def _evaluate_host(env, params, controller, key, num_episodes, batched_params, p
                 records[name].append(np.asarray(info[name]))
             obs = obs_next
             done |= np.asarray(terminated) | np.asarray(truncated)
-            if bar is not None:
-                bar.update(task, advance=1)
+            progress.update(k + 1, {"episodes_done": int(done.sum())})
             if done.all():
                 break
-    finally:
-        if bar is not None:
-            bar.stop()
     run_s = time.perf_counter() - start
 
     trajectory = {name: np.stack(values) for name, values in records.items()}
@@ -338,7 +326,7 @@ def evaluate(
     *,
     batched_params: bool = False,
     measure_time: bool = True,
-    progress: bool = False,
+    progress=None,
     mesh=None,
 ) -> Evaluation:
     """Run ``num_episodes`` episodes of ``env`` under ``controller`` and score them.
@@ -349,7 +337,9 @@ def evaluate(
         num_episodes: number of episodes, run as parallel copies (one episode per copy).
         batched_params: ``params`` has a leading axis of size ``num_episodes`` (a sweep).
         measure_time: time JAX controllers alone (one extra replay); host controllers are always timed.
-        progress: show a progress bar (host controllers, whose loop runs in Python).
+        progress: a ``scg_algorithms.progress.Progress``: the task ``"evaluating NAME on N episodes"``, counting
+            control steps for a host controller (whose loop runs in Python), uncounted for a JAX one (compiling and
+            one jitted call). None: silent.
         mesh: ``scg_jax.sharding.make_mesh(devices)``: JAX controllers' copies are laid out over its devices and
             processes (``num_episodes`` must divide evenly; every process gets all copies' results); host
             controllers ignore it. ``None``: one device.
@@ -358,12 +348,14 @@ def evaluate(
         ``Evaluation`` (see its docstring for the definitions).
     """
     num_episodes = _check(env, params, controller, num_episodes)
+    progress = as_progress(progress)
     if is_filtered(controller):
         check_system(controller.safety_filter, env)
     if controller.is_jax:
-        trajectory, timing, per_step, per_batch_step = _evaluate_jax(
-            env, params, controller, key, num_episodes, batched_params, measure_time, mesh
-        )
+        with running(progress, Task(f"evaluating {controller.name} on {num_episodes} episodes")):
+            trajectory, timing, per_step, per_batch_step = _evaluate_jax(
+                env, params, controller, key, num_episodes, batched_params, measure_time, mesh
+            )
     else:
         trajectory, timing, per_step, per_batch_step = _evaluate_host(
             env, params, controller, key, num_episodes, batched_params, progress
