@@ -213,16 +213,14 @@ def test_training_with_copies_that_do_not_divide_names_the_option(cartpole, mesh
 
 
 def test_rollout_devices_are_recorded_in_metrics_json(mesh, tmp_path):
-    """``scg-jax rollout --devices 2`` lays 8 copies out over the first 2 devices and says so in metrics.json, with
-    the single-device numbers."""
+    """``scg-jax rollout --devices 2`` lays its copies out over the first 2 devices and says so in metrics.json (that a
+    sharded rollout gives the single-device numbers is ``test_sharded_rollout_equals_the_single_device_one``)."""
     import json
 
     from scg_cli import main
 
-    args = ["rollout", "--system", "cartpole", "--episode-len", "1", "--num-envs", str(NUM_ENVS)]
-    assert main([*args, "--devices", "2", "--out", str(tmp_path / "two")]) == 0
-    assert main([*args, "--out", str(tmp_path / "one")]) == 0
-    two, one = (json.loads((tmp_path / name / "metrics.json").read_text()) for name in ("two", "one"))
-    assert two["devices"] == [str(device) for device in jax.devices()[:2]] and len(set(two["devices"])) == 2
-    assert one["devices"] == [str(jax.devices()[0])]
-    np.testing.assert_allclose(two["per_copy"]["rmse"], one["per_copy"]["rmse"], rtol=1e-5)
+    args = ["rollout", "--system", "cartpole", "--episode-len", "0.5", "--num-envs", str(NUM_ENVS), "--devices", "2"]
+    assert main([*args, "--out", str(tmp_path)]) == 0
+    record = json.loads((tmp_path / "metrics.json").read_text())
+    assert record["devices"] == [str(device) for device in jax.devices()[:2]] and len(set(record["devices"])) == 2
+    assert record["summary"]["failure_rate"] == 0.0 and len(record["per_copy"]["rmse"]) == NUM_ENVS
