@@ -134,9 +134,26 @@ def test_piped_compare_prints_every_interval_from_its_start_and_ctrl_c_exits_130
     assert max(_gaps(lines[:-1])) <= INTERVAL + SLACK, list(zip(_gaps(lines), texts[1:], strict=True))
 
 
+def test_piped_eval_prints_every_interval_through_compilation_evaluation_and_writing(tmp_path):
+    """A JAX controller: the closed loop is one jitted call (compiled, then run), then the files are written; a line
+    at least every interval from the command's own first line to the table."""
+    out = tmp_path / "e.json"
+    args = ["eval", "--system", "cartpole", "--controller", "lqr", "--episodes", "4", "--episode-len", "1",
+            "--progress-interval", str(INTERVAL), "--out", str(out)]  # fmt: skip
+    status, lines, err = _Piped(args, tmp_path).finish()
+    assert status == 0 and err == "", err
+    texts = [text for _, text in lines]
+    table = next(i for i, text in enumerate(texts) if not PROGRESS_LINE.match(text))
+    assert texts[0].startswith("eval lqr: elapsed 0:0") and table > 2
+    assert any(t.startswith("evaluating lqr on 4 episodes") for t in texts[:table])
+    assert any(t.startswith(f"writing {out}") for t in texts[:table])
+    assert max(_gaps(lines[:table])) <= INTERVAL + SLACK, list(zip(_gaps(lines), texts[1:], strict=False))
+    assert out.is_file() and out.with_suffix(".png").is_file() and any(t.startswith("wrote ") for t in texts[table:])
+
+
 def test_piped_eval_ctrl_c_after_the_first_progress_line_exits_130_with_one_line(tmp_path):
     out = tmp_path / "e.json"
-    args = ["eval", "--system", "cartpole", "--controller", "nonlinear_mpc", "--episodes", "2",
+    args = ["eval", "--system", "cartpole", "--controller", "lqr", "--episodes", "4",
             "--progress-interval", str(INTERVAL), "--out", str(out)]  # fmt: skip
     run = _Piped(args, tmp_path)
     run.wait_for(lambda lines: len(lines) >= 1)
@@ -144,6 +161,6 @@ def test_piped_eval_ctrl_c_after_the_first_progress_line_exits_130_with_one_line
     status, lines, err = run.finish()
     texts = [text for _, text in lines]
     assert status == 130 and err == "" and "Traceback" not in " ".join(texts), err
-    assert texts[0].startswith("eval nonlinear_mpc: elapsed 0:0") and texts[-1] == "interrupted; nothing written"
+    assert texts[0].startswith("eval lqr: elapsed 0:0") and texts[-1] == "interrupted; nothing written"
     assert all(PROGRESS_LINE.match(text) for text in texts[:-1]), texts
     assert not any(tmp_path.iterdir())
