@@ -467,7 +467,8 @@ def test_collector_records_what_every_learner_needs():
         state = init_collector(train_env, key, params)
         return collect(train_env, params, state, act, jax.random.key(1), 6, info_keys=("constraint_values",))
 
-    state, steps, episode = run(jax.random.key(0))
+    state, steps, episode, labels = run(jax.random.key(0))
+    assert labels is None and "label" not in steps.extras
     assert steps.obs.shape == (6, 4, 4) and steps.action.shape == (6, 4, 1) and steps.adversary is None
     np.testing.assert_allclose(steps.extras["obs_sum"], np.sum(steps.obs, axis=-1), rtol=1e-6)
     # Force 0.3 * 10 N = 3 N against a 0.5 N bound: every step violates, cost 1.
@@ -499,6 +500,6 @@ def test_collector_passes_the_adversary_input_to_the_env():
         state = init_collector(train_env, key, params)
         return collect(train_env, params, state, act, jax.random.key(1), 4, info_keys=("u",))
 
-    _, steps, _ = run(jax.random.key(0))
+    steps = run(jax.random.key(0)).transitions
     np.testing.assert_allclose(steps.info["u"], 2.0, rtol=1e-6)
     np.testing.assert_array_equal(steps.adversary, 1.5)
