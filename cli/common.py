@@ -111,10 +111,21 @@ def make_env(args: argparse.Namespace):
         return env, params, cfg
     except FieldError as error:
         option = error.path.removeprefix("env.")
-        flag = f"argument {_FLAG_OF_OPTION[option][0]}: " if option in _FLAG_OF_OPTION else ""
+        if any(_related(text.partition("=")[0].strip(), error.path) for text in args.set):
+            flag = "argument --set: "  # the value came from an override, not from the flag of that option
+        elif option in _FLAG_OF_OPTION:
+            flag = f"argument {_FLAG_OF_OPTION[option][0]}: "
+        else:
+            flag = ""
         raise UsageError(f"{flag}{error}") from None
     except (ValueError, OSError) as error:  # e.g. a config file that cannot be read
         raise UsageError(str(error)) from None
+
+
+def _related(key: str, path: str) -> bool:
+    """Whether the dotted override key ``key`` is the field ``path`` or lies inside it, or ``path`` inside ``key``."""
+    short, long = sorted((key, path), key=len)
+    return long == short or (long.startswith(short) and long[len(short)] in ".[")
 
 
 def check_output(path: Path, kind: str) -> Path:
@@ -159,9 +170,9 @@ def _format_metric(summary: dict, name: str, spread: str | None = None, digits: 
     return text
 
 
-_TABLE_ROWS = (
-    ("rmse (m)", "rmse", "rmse_std", 4),
-    ("worst-case rmse, CVaR 0.5 (m)", "worst_case_rmse_at_0.5", None, 4),
+_TABLE_ROWS = (  # {unit}: what the RMSE measures (scg_algorithms.rl.curves.rmse_unit)
+    ("rmse ({unit})", "rmse", "rmse_std", 4),
+    ("worst-case rmse, CVaR 0.5 ({unit})", "worst_case_rmse_at_0.5", None, 4),
     ("failure rate", "failure_rate", None, 3),
     ("steps in violation", "constraint_violation_steps", "constraint_violation_steps_std", 1),
     ("return", "return", "return_std", 3),
@@ -176,7 +187,9 @@ _FILTER_ROWS = (
 )
 
 
-def summary_table(title: str, summaries: dict[str, dict]):
+def summary_table(title: str, summaries: dict[str, dict], rmse_unit: str):
+    """The metrics of each column's summary; ``rmse_unit`` (``scg_algorithms.rl.curves.rmse_unit``: ``"m"`` or
+    ``"weighted state error, mixed units"``) names what the RMSE rows measure."""
     from rich.table import Table
 
     table = Table(title=title, min_width=len(title) + 4)
@@ -194,7 +207,7 @@ def summary_table(title: str, summaries: dict[str, dict]):
             per_step = summary.get("compute_time_per_step_s")
             summary["compute_time_per_step_ms"] = None if per_step is None else 1e3 * per_step
             cells.append(_format_metric(summary, key, spread, digits))
-        table.add_row(label, *cells)
+        table.add_row(label.format(unit=rmse_unit), *cells)
     return table
 
 

@@ -4,6 +4,7 @@ folders) on the same episodes through the evaluation harness; JSON, trajectories
 from __future__ import annotations
 
 import argparse
+import difflib
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +20,7 @@ from scg_cli.common import (
     positive_int,
     summary_table,
 )
-from scg_cli.progress import add_progress_argument, console_progress
+from scg_cli.progress import add_progress_argument, command_progress
 from scg_cli.scale import add_scale_arguments, check_batch, is_main_process, make_mesh, start_distributed
 from scg_jax.files import write_atomic, write_json
 
@@ -98,8 +99,9 @@ def add_compare_parser(subparsers) -> argparse.ArgumentParser:
     return parser
 
 
-def _build_controller(spec: str, env, params, cfg, prior_scale: float):
-    """A controller from a registered name (options from ``cfg.controllers``) or a trained policy's folder."""
+def _build_controller(spec: str, env, params, cfg, prior_scale: float, flag: str = "--controller"):
+    """A controller from a registered name (options from ``cfg.controllers``) or a trained policy's folder; errors
+    name ``flag`` (``--controllers`` for compare)."""
     from scg_algorithms import CONTROLLERS, make_controller
     from scg_jax.env import prior_params
 
@@ -113,7 +115,7 @@ def _build_controller(spec: str, env, params, cfg, prior_scale: float):
             raise UsageError(str(error)) from None
     path = Path(spec)
     if path.is_dir() and _is_gp_mpc_run(path):
-        return _load_gp_mpc_run(path, env, params, cfg, prior_scale)
+        return _load_gp_mpc_run(path, env, params, cfg, prior_scale, flag)
     if path.is_dir():
         from scg_algorithms.rl.policy import load_policy
 
@@ -122,10 +124,11 @@ def _build_controller(spec: str, env, params, cfg, prior_scale: float):
         try:
             return load_policy(path, env, params)
         except (ValueError, OSError) as error:
-            raise UsageError(f"argument --controller: {error}") from None
+            raise UsageError(f"argument {flag}: {error}") from None
+    close = difflib.get_close_matches(spec, list(CONTROLLERS), n=1)
     raise UsageError(
-        f"argument --controller: {spec!r} is neither a controller name ({', '.join(CONTROLLERS)}) nor a policy "
-        "folder written by scg-jax train"
+        f"argument {flag}: {spec!r} is neither a controller name ({', '.join(CONTROLLERS)}) nor a policy "
+        "folder written by scg-jax train" + (f" (did you mean {close[0]!r}?)" if close else "")
     )
 
 
@@ -163,7 +166,7 @@ def _is_gp_mpc_run(path: Path) -> bool:
     return is_run(path)
 
 
-def _load_gp_mpc_run(path: Path, env, params, cfg, prior_scale: float):
+def _load_gp_mpc_run(path: Path, env, params, cfg, prior_scale: float, flag: str):
     """The GP-MPC learned in ``path``, on the prior it was learned with (``--prior-scale`` must agree or stay 1)."""
     import json
 
@@ -180,16 +183,15 @@ def _load_gp_mpc_run(path: Path, env, params, cfg, prior_scale: float):
     try:
         return load_run(path, env, prior, cfg.controllers.get("gp_mpc"))
     except (ValueError, OSError) as error:
-        raise UsageError(f"argument --controller: {error}") from None
+        raise UsageError(f"argument {flag}: {error}") from None
 
 
-def _evaluate(controller, env, params, args, console, mesh=None):
-    """``evaluate`` with its progress on the console (process 0 of a --distributed job only)."""
+def _evaluate(controller, env, params, args, progress, mesh=None):
+    """``evaluate`` with ``--seed`` and ``--episodes``, reporting to ``progress``."""
     import jax
 
     from scg_algorithms.evaluation import evaluate
 
-    progress = console_progress(console, args.progress_interval, is_main_process())
     return evaluate(env, params, controller, jax.random.key(args.seed), args.episodes, progress=progress, mesh=mesh)
 
 
@@ -212,45 +214,50 @@ def _evaluation_extra(env, cfg, args, controller) -> dict:
 
 def run_eval(args: argparse.Namespace, console) -> int:
     from scg_algorithms.evaluation import evaluation_record
+    from scg_algorithms.progress import Task, running
+    from scg_algorithms.rl.curves import rmse_unit
     from scg_jax.plotting import plot_rollout
 
     if args.out.suffix != ".json":
         raise UsageError(f"argument --out: expected a .json file name, got {str(args.out)!r}")
     start_distributed(args)  # before any JAX computation
     check_output(args.out, "file")
-    env, params, cfg = make_env(args)
-    mesh = make_mesh(args, cfg)
-    check_batch(mesh, args.episodes, "--episodes")
-    controller = _with_filter(
-        _build_controller(args.controller, env, params, cfg, args.prior_scale), env, params, cfg, args
-    )
-    evaluation = _evaluate(controller, env, params, args, console, mesh)
-    if not is_main_process():  # every process holds every copy's metrics; process 0 writes them
-        return 0
-    npz_path, png_path = args.out.with_suffix(".npz"), args.out.with_suffix(".png")
-    data = {
-        **env_arrays(env, params),
-        **{name: value for name, value in evaluation.trajectory.items() if name not in ("x", "x_ref")},
-        "x": evaluation.trajectory["x"][:-1],
-        "x_final": evaluation.trajectory["x"][-1],
-        # The plot draws one reference; copies share it unless the params were a sweep.
-        "x_ref": evaluation.trajectory["x_ref"][:, 0],
-        "controller": np.asarray(controller.name),
-    }
-    write_atomic(npz_path, lambda file: np.savez_compressed(file, **data))
-    record = evaluation_record(evaluation, _evaluation_extra(env, cfg, args, controller))
-    write_json(args.out, record)
-    plot_rollout(npz_path, png_path)
+    main = is_main_process()
+    with command_progress(console, f"eval {args.controller}", args.progress_interval, main) as progress:
+        env, params, cfg = make_env(args)
+        mesh = make_mesh(args, cfg)
+        check_batch(mesh, args.episodes, "--episodes")
+        controller = _with_filter(
+            _build_controller(args.controller, env, params, cfg, args.prior_scale), env, params, cfg, args
+        )
+        evaluation = _evaluate(controller, env, params, args, progress, mesh)
+        if not main:  # every process holds every copy's metrics; process 0 writes them
+            return 0
+        npz_path, png_path = args.out.with_suffix(".npz"), args.out.with_suffix(".png")
+        data = {
+            **env_arrays(env, params),
+            **{name: value for name, value in evaluation.trajectory.items() if name not in ("x", "x_ref")},
+            "x": evaluation.trajectory["x"][:-1],
+            "x_final": evaluation.trajectory["x"][-1],
+            # The plot draws one reference; copies share it unless the params were a sweep.
+            "x_ref": evaluation.trajectory["x_ref"][:, 0],
+            "controller": np.asarray(controller.name),
+        }
+        with running(progress, Task(f"writing {args.out} and its .npz and .png")):
+            write_atomic(npz_path, lambda file: np.savez_compressed(file, **data))
+            record = evaluation_record(evaluation, _evaluation_extra(env, cfg, args, controller))
+            write_json(args.out, record)
+            plot_rollout(npz_path, png_path)
     title = f"{env.system.name} {env.task} | {controller.name} | {args.episodes} episodes x {env.num_steps} steps"
-    console.print(summary_table(title, {controller.name: evaluation.summary}))
+    console.print(summary_table(title, {controller.name: evaluation.summary}, rmse_unit(env, params)))
     console.print(f"wrote {args.out}, {npz_path}, {png_path}")
     return 0
 
 
 def run_compare(args: argparse.Namespace, console) -> int:
     from scg_algorithms.evaluation import evaluation_record
+    from scg_algorithms.rl.curves import rmse_unit
 
-    env, params, cfg = make_env(args)
     specs = [item.strip() for item in args.controllers.split(",") if item.strip()]
     if not specs:
         raise UsageError("argument --controllers: expected at least one controller name or policy folder")
@@ -260,25 +267,29 @@ def run_compare(args: argparse.Namespace, console) -> int:
         raise UsageError(f"argument --out: expected a .json file name, got {str(args.out)!r}")
     if args.out is not None:
         check_output(args.out, "file")
-    controllers = [_build_controller(spec, env, params, cfg, args.prior_scale) for spec in specs]
-    labels = [
-        c.name if spec == c.name else f"{c.name} ({Path(spec).name})"
-        for spec, c in zip(specs, controllers, strict=True)
-    ]
-    if args.filter is not None:
-        suffix = f"+{Path(args.filter).name if Path(args.filter).is_dir() else args.filter}"
-        labels = [label + suffix for label in labels]
-        controllers = [_with_filter(c, env, params, cfg, args) for c in controllers]
-    records, summaries = {}, {}
-    for label, controller in zip(labels, controllers, strict=True):
-        evaluation = _evaluate(controller, env, params, args, console)
-        summaries[label] = evaluation.summary
-        records[label] = evaluation_record(evaluation, {"controller_info": jsonable(getattr(controller, "info", {}))})
+    with command_progress(console, f"compare {','.join(specs)}", args.progress_interval) as progress:
+        env, params, cfg = make_env(args)
+        controllers = [_build_controller(spec, env, params, cfg, args.prior_scale, "--controllers") for spec in specs]
+        labels = [
+            c.name if spec == c.name else f"{c.name} ({Path(spec).name})"
+            for spec, c in zip(specs, controllers, strict=True)
+        ]
+        if args.filter is not None:
+            suffix = f"+{Path(args.filter).name if Path(args.filter).is_dir() else args.filter}"
+            labels = [label + suffix for label in labels]
+            controllers = [_with_filter(c, env, params, cfg, args) for c in controllers]
+        records, summaries = {}, {}
+        for label, controller in zip(labels, controllers, strict=True):
+            evaluation = _evaluate(controller, env, params, args, progress)
+            summaries[label] = evaluation.summary
+            info = {"controller_info": jsonable(getattr(controller, "info", {}))}
+            records[label] = evaluation_record(evaluation, info)
+        if args.out is not None:
+            extra = _evaluation_extra(env, cfg, args, controllers[0])
+            extra.pop("controller_info")
+            write_json(args.out, {**extra, "controllers": records})
     title = f"{env.system.name} {env.task} | {args.episodes} episodes x {env.num_steps} steps | seed {args.seed}"
-    console.print(summary_table(title, summaries))
+    console.print(summary_table(title, summaries, rmse_unit(env, params)))
     if args.out is not None:
-        extra = _evaluation_extra(env, cfg, args, controllers[0])
-        extra.pop("controller_info")
-        write_json(args.out, {**extra, "controllers": records})
         console.print(f"wrote {args.out}")
     return 0

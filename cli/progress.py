@@ -5,14 +5,18 @@ and a counted task leaves one line when it ends. When stdout is not a terminal (
 nothing to redraw, so plain lines are printed instead: one when a task starts, then one at least every
 ``--progress-interval`` seconds while it runs (also while nothing is reported, e.g. during compilation or a long
 host-side evaluation: a background thread keeps time) and one for its last count. Notes are printed as they come.
+``command_progress`` keeps a task open for a command's whole run, so the lines keep coming between the library's
+tasks too (building controllers, loading, writing).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import threading
 import time
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -118,12 +122,17 @@ class ConsoleProgress:
         with self.lock:
             self.console.print(text, markup=False, highlight=False, soft_wrap=True)
 
-    def start(self, task: Task) -> None:
+    def start(self, task: Task, announce: bool = True) -> None:
+        """Open ``task``; when piped its first line is printed now, or (``announce=False``) only once ``interval``
+        seconds pass without a line, so a command that fails at once prints nothing but its error."""
         with self.lock:
             entry = _Open(task)
             self.open.append(entry)
             if self.plain:
-                self._print(entry.line())
+                if announce:
+                    self._print(entry.line())
+                else:
+                    self.last_print = time.perf_counter()
                 self._start_ticker()
             else:
                 self._draw(entry)
@@ -210,3 +219,21 @@ def console_progress(console, interval: float = 10.0, enabled: bool = True) -> P
     """A ``Progress`` drawn on ``console`` (``ConsoleProgress``), or a silent one when not ``enabled`` (e.g. every
     process of a ``--distributed`` job but process 0)."""
     return ConsoleProgress(console, interval).progress() if enabled else SILENT
+
+
+@contextlib.contextmanager
+def command_progress(console, name: str, interval: float = 10.0, enabled: bool = True) -> Iterator[Progress]:
+    """The progress of a whole command: the task ``name`` is open while the block runs, so a piped command prints a
+    line at least every ``interval`` seconds from here to its end, also while it builds envs and controllers, loads
+    or writes files (where the library reports no task of its own); the library's tasks nest inside it. Its first
+    line waits for the first interval (a usage error found at once prints only itself). Silent when not
+    ``enabled``. The block's results are printed after it, once the task has ended."""
+    if not enabled:
+        yield SILENT
+        return
+    reporter = ConsoleProgress(console, interval)
+    reporter.start(Task(name), announce=False)
+    try:
+        yield reporter.progress()
+    finally:
+        reporter.done()

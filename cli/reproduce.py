@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from scg_cli.common import UsageError, check_output, positive_int
-from scg_cli.progress import add_progress_argument, console_progress
+from scg_cli.progress import add_progress_argument, command_progress
 
 
 def add_reproduce_parser(subparsers) -> argparse.ArgumentParser:
@@ -38,12 +38,17 @@ def add_reproduce_parser(subparsers) -> argparse.ArgumentParser:
 
 def run_reproduce(args: argparse.Namespace, console) -> int:
     from scg_experiments import RESULTS, reproduce
+    from scg_jax.validation import FieldError
+    from scg_jax.validation import name as check_name
 
-    unknown = [name for name in args.names if name not in RESULTS]
-    if unknown:
-        raise UsageError(f"argument NAME: unknown result {unknown[0]!r}; allowed values are {', '.join(RESULTS)}")
+    for name in args.names:
+        try:
+            check_name(name, "NAME", RESULTS)
+        except FieldError as error:
+            raise UsageError(f"argument NAME: {error.reason}") from None
     check_output(args.out, "dir")
     seeds = args.seeds if args.seeds is not None else (3 if args.profile == "paper" else 1)
-    reproduce(args.names, args.out, args.profile, seeds, console_progress(console, args.progress_interval))
+    with command_progress(console, "reproduce", args.progress_interval) as progress:
+        reproduce(args.names, args.out, args.profile, seeds, progress)
     console.print(f"wrote {args.out}/report.md")
     return 0

@@ -173,6 +173,8 @@ def run_rollout(args: argparse.Namespace, console) -> int:
             "summary": summary,
             "timing": {"compile_s": compile_s, "run_s": run_s, "steps_per_s": steps_per_s},
             "device": str(jax.devices()[0]),
+            # The devices the copies were laid out over (--devices, or the config's devices; one without either).
+            "devices": [str(device) for device in (jax.devices()[:1] if mesh is None else mesh.devices.flat)],
             "per_copy": {name: np.asarray(values).tolist() for name, values in per_copy.items()},
         }
         write_json(out / "metrics.json", record)
@@ -180,7 +182,7 @@ def run_rollout(args: argparse.Namespace, console) -> int:
         plot_rollout(out / "rollout.npz", out / "rollout.png")
         bar.update(stage, completed=1)
 
-    console.print(_metrics_table(args, env, summary, compile_s, run_s, steps_per_s, gain))
+    console.print(_metrics_table(args, env, params, summary, compile_s, run_s, steps_per_s, gain))
     console.print(f"wrote {out / 'rollout.npz'}, {out / 'metrics.json'}, {out / 'rollout.png'}")
     return 0
 
@@ -201,14 +203,16 @@ def _rollout_data(env, params, traj) -> dict[str, np.ndarray]:
     }
 
 
-def _metrics_table(args, env, summary: dict, compile_s: float, run_s: float, steps_per_s: float, gain=None):
+def _metrics_table(args, env, params, summary: dict, compile_s: float, run_s: float, steps_per_s: float, gain=None):
     from rich.table import Table
+
+    from scg_algorithms.rl.curves import rmse_unit
 
     title = f"{env.system.name} {env.task} | policy {args.policy} | {args.num_envs} copies x {env.num_steps} steps"
     table = Table(title=title, min_width=len(title) + 4)
     table.add_column("metric")
     table.add_column("value", justify="right")
-    table.add_row("rmse (m)", f"{summary['rmse_mean']:.4f} ± {summary['rmse_std']:.4f}")
+    table.add_row(f"rmse ({rmse_unit(env, params)})", f"{summary['rmse_mean']:.4f} ± {summary['rmse_std']:.4f}")
     table.add_row("return", f"{summary['return_mean']:.3f} ± {summary['return_std']:.3f}")
     table.add_row("length (steps)", f"{summary['length_mean']:.1f} / {env.num_steps}")
     table.add_row("failure rate", f"{summary['failure_rate']:.3f}")

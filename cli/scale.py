@@ -4,6 +4,7 @@ devices, ``scg_jax.sharding``) and ``--distributed`` (one job over several proce
 from __future__ import annotations
 
 import argparse
+import os
 
 from scg_cli.common import UsageError
 
@@ -39,7 +40,14 @@ def start_distributed(args: argparse.Namespace) -> None:
     try:
         initialize_distributed(args.coordinator, args.num_processes, args.process_id)
     except (ValueError, RuntimeError) as error:
-        raise UsageError(f"argument --distributed: {error}") from None
+        if args.coordinator is None and not os.environ.get("JAX_COORDINATOR_ADDRESS"):
+            # JAX's own words here are "coordinator_address should be defined."
+            raise UsageError(
+                "argument --distributed: found no cluster to join (SLURM, Open MPI or Kubernetes) and no coordinator; "
+                "pass --coordinator HOST:PORT --num-processes N --process-id I (or set JAX_COORDINATOR_ADDRESS, "
+                "SCG_JAX_NUM_PROCESSES and SCG_JAX_PROCESS_ID); docs/scaling.md has launch recipes"
+            ) from None
+        raise UsageError(f"argument --distributed: could not join the job: {error}") from None
     if args.devices is None:
         args.devices = "all"  # a multi-process job spans every process's devices
 

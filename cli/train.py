@@ -8,7 +8,7 @@ from pathlib import Path
 
 from scg_algorithms.learners import LEARNERS, learner_spec, prior_learners
 from scg_cli.common import UsageError, add_env_arguments, check_output, make_env, positive_int, summary_table
-from scg_cli.progress import add_progress_argument, console_progress, positive_seconds
+from scg_cli.progress import add_progress_argument, command_progress, positive_seconds
 from scg_cli.scale import add_scale_arguments, is_main_process, make_mesh, start_distributed
 
 # train_run's arguments as this command's flags: in its error messages, and for the field a FieldError names.
@@ -54,7 +54,8 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
         "--resume",
         action="store_true",
         help="continue the run in DIR from its checkpoint (same algo and settings; training.ALGO.total_env_steps "
-        "may be raised to extend a finished run); bit-identical to an uninterrupted run",
+        "may be raised to extend a finished run); bit-identical to an uninterrupted run; a DIR without a run is "
+        "refused",
     )
     run.add_argument("--overwrite", action="store_true", help="replace the run already in DIR")
     parser.add_argument(
@@ -116,28 +117,32 @@ def _usage_error(error: ValueError) -> UsageError:
 
 
 def run_train(args: argparse.Namespace, console) -> int:
+    from scg_algorithms.rl.curves import rmse_unit
     from scg_algorithms.rl.training import TrainingInterrupted
     from scg_algorithms.runs import EvaluationInterrupted, train_run
 
     check_output(args.out, "dir")  # before any work: a file in the way or an unwritable location
     spec = learner_spec(args.algo)
+    if args.resume and spec.is_jax:
+        _check_resumable_folder(args.out)
     if args.distributed and not spec.is_jax:
         raise UsageError(
             f"argument --distributed: {args.algo} trains in one process; --distributed is for the JAX learners"
         )
     start_distributed(args)  # before any JAX computation
-    _, _, cfg = make_env(args)
-    mesh = make_mesh(args, cfg) if spec.is_jax else None
+    main = is_main_process()
     record = {"config_file": None if args.config is None else str(args.config), "overrides": list(args.set)}
     try:
-        result = train_run(
-            args.algo, cfg, args.out, seed=args.seed, resume=args.resume, overwrite=args.overwrite,
-            checkpoint_seconds=args.checkpoint_interval, eval_episodes=args.eval_episodes,
-            prior_scale=args.prior_scale, mesh=mesh, record=record, names=FLAGS,
-            progress=console_progress(console, args.progress_interval, is_main_process()),
-        )  # fmt: skip
+        with command_progress(console, f"train {args.algo}", args.progress_interval, main) as progress:
+            env, params, cfg = make_env(args)
+            mesh = make_mesh(args, cfg) if spec.is_jax else None
+            result = train_run(
+                args.algo, cfg, args.out, seed=args.seed, resume=args.resume, overwrite=args.overwrite,
+                checkpoint_seconds=args.checkpoint_interval, eval_episodes=args.eval_episodes,
+                prior_scale=args.prior_scale, mesh=mesh, record=record, names=FLAGS, progress=progress,
+            )  # fmt: skip
     except TrainingInterrupted as stop:
-        if is_main_process():
+        if main:
             _print_line(console, _interrupted_text(args, stop))
         return 130  # the shell's status for a process ended by Ctrl-C (128 + SIGINT)
     except EvaluationInterrupted:
@@ -145,22 +150,49 @@ def run_train(args: argparse.Namespace, console) -> int:
         _print_line(console, f"interrupted during the final evaluation; the trained {args.algo} is saved in "
                              f"{args.out} (evaluate it with scg-jax eval {use} {args.out})")  # fmt: skip
         return 130
-    except KeyboardInterrupt:  # GP-MPC's rounds, the learned CBF's episodes: written whole at their end
-        _print_line(console, f"interrupted; nothing saved (a {args.algo} run is written when its {spec.unit}s finish)")
+    except KeyboardInterrupt:  # set-up; GP-MPC's rounds, the learned CBF's episodes: written whole at their end
+        written = f"interrupted; nothing saved (a {args.algo} run is written when its {spec.unit}s finish)"
+        _print_line(console, "interrupted before training started; nothing saved" if spec.is_jax else written)
         return 130
     except ValueError as error:
         raise _usage_error(error) from None
-    if not is_main_process():  # process 0 writes metrics.json and reports
+    if not main:  # process 0 writes metrics.json and reports
         return 0
-    console.print(summary_table(_title(result, args), {result.evaluation.controller: result.evaluation.summary}))
+    if _nothing_trained(result):
+        _print_line(console, f"nothing to train: the run in {args.out} was already complete at iteration "
+                             f"{result.training['iterations']}; it was evaluated again (raise "
+                             f"training.{args.algo}.total_env_steps to extend it)")  # fmt: skip
+    summary = {result.evaluation.controller: result.evaluation.summary}
+    console.print(summary_table(_title(result, args), summary, rmse_unit(env, params)))
     _print_line(console, f"wrote {args.out}/{', '.join(result.files)}")
     return 0
 
 
+def _check_resumable_folder(out: Path) -> None:
+    """``--resume`` needs a run to continue: a folder without a JAX learner's checkpoint is refused (a typo in
+    ``--out`` must not start a whole new run)."""
+    from scg_algorithms.rl.training import CHECKPOINT_NAME
+
+    if not (out / f"{CHECKPOINT_NAME}.json").is_file():
+        what = "does not exist" if not out.exists() else f"holds no run to resume (no {CHECKPOINT_NAME}.json)"
+        raise UsageError(
+            f"argument --resume: {out} {what}; check --out, or leave out --resume to start a new run there"
+        )
+
+
+def _nothing_trained(result) -> bool:
+    """Whether a resumed JAX run was already complete (its checkpoint at the budget): no iteration ran."""
+    training = result.training
+    return learner_spec(result.algo).is_jax and training.get("resumed_from_iteration") == training["iterations"]
+
+
 def _interrupted_text(args: argparse.Namespace, stop) -> str:
+    from scg_algorithms.rl.training import existing_run_files
+
+    if stop.checkpoint is None:  # no checkpoint to resume: start again, replacing what the first attempt left
+        again = _train_command_line(args, resume=False, overwrite=bool(existing_run_files(args.out)))
+        return f"interrupted before the first iteration completed; nothing saved. Start again with:\n{again}"
     resume = _train_command_line(args, resume=True, overwrite=False)
-    if stop.checkpoint is None:
-        return f"interrupted before the first iteration completed; nothing saved. Start again with:\n{resume}"
     where = f"iteration {stop.iteration}/{stop.num_iterations} saved in {stop.checkpoint}"
     return f"interrupted: {where}\nresume with:\n{resume}"
 
@@ -172,7 +204,12 @@ def _print_line(console, text: str) -> None:
 
 def _title(result, args: argparse.Namespace) -> str:
     training, spec = result.training, learner_spec(result.algo)
-    if spec.is_jax:
+    if spec.is_jax and _nothing_trained(result):
+        what = f"{result.algo}, already trained: {training['env_steps']:,} env steps, none this time"
+    elif spec.is_jax and training.get("resumed_from_iteration") is not None:
+        what = (f"{result.algo}, resumed at iteration {training['resumed_from_iteration']}: {training['env_steps']:,} "
+                f"env steps in all, {training['total_time_s']:.1f} s this time")  # fmt: skip
+    elif spec.is_jax:
         what = f"{result.algo}, {training['env_steps']:,} env steps in {training['total_time_s']:.1f} s"
     elif "rounds" in training:
         what = f"{result.algo} after {training['rounds']} rounds"

@@ -334,19 +334,25 @@ def dump_config(cfg: Config, path: str | os.PathLike | None = None) -> str:
     return text
 
 
-def make_from_config(cfg: Config | EnvConfig) -> tuple[Env, EnvParams]:
-    """``make(cfg.env)`` and its ``default_params``.
+def make_from_config(cfg: Config | EnvConfig | str | os.PathLike) -> tuple[Env, EnvParams]:
+    """``make(cfg.env)`` and its ``default_params``; ``cfg`` is a ``Config``, its ``EnvConfig``, or a path to a YAML
+    file (a ``str`` or ``Path``, read by ``load_config``; YAML text works too).
 
     Raises:
         ConfigError (a ValueError): with the full dotted path, e.g. ``env.constraints[1].bound: ...`` or
             ``env.physics.pole_mass: must be a positive finite number ...``.
+        OSError: a path that cannot be read.
     """
+    if isinstance(cfg, str | os.PathLike):
+        cfg = load_config(cfg)
     if isinstance(cfg, Config):
         env_cfg = cfg.env
     elif isinstance(cfg, EnvConfig):
         env_cfg = cfg
     else:
-        raise TypeError(f"make_from_config: expected a Config or an EnvConfig, got {type(cfg).__name__}")
+        raise TypeError(
+            f"make_from_config: expected a Config, an EnvConfig or a path to a YAML file, got {type(cfg).__name__}"
+        )
     try:
         env = make(env_cfg)
     except ConfigError as err:  # make's paths are relative to the env section

@@ -18,9 +18,10 @@ Step semantics (control step ``k -> k + 1``):
 5. constraints are evaluated at ``(x_{k+1}, u_cmd)``; the observation of ``x_{k+1}`` gets the
    observation-channel disturbances (and an observation adversary's input).
 
-A non-finite state after integration (e.g. from a NaN action) ends the episode, keeps ``x_k`` and still gives a
-finite reward and cost (see ``Env.step``). ``params.replace(...)`` is unchecked; ``Env.with_physics`` and
-``Env.validate`` check values as ``make`` does.
+A non-finite input (a NaN or infinite entry of the action, before saturation) or a non-finite state after
+integration ends the episode, keeps ``x_k`` and still gives a finite reward and cost (see ``Env.step``): an infinite
+action is not saturated into a finite one, so +inf, -inf and NaN end an episode alike on every system.
+``params.replace(...)`` is unchecked; ``Env.with_physics`` and ``Env.validate`` check values as ``make`` does.
 
 Rewards (``reward_type``), with ``c = 1/2 e^T Q e + 1/2 du^T R du``, ``e = x_{k+1} - x_ref[k+1]``,
 ``du = u - u_ref[k]``:
@@ -465,18 +466,19 @@ class Env:
 
         Returns:
             ``StepOutput`` with ``info`` holding ``mse`` (weighted squared tracking error of ``x_{k+1}``),
-            ``quadratic_cost`` (``c`` above), ``out_of_bounds``, ``goal_reached``, ``nonfinite`` (the
-            integration produced a non-finite state: the episode ends and the last finite state is kept),
+            ``quadratic_cost`` (``c`` above), ``out_of_bounds``, ``goal_reached``, ``nonfinite`` (the input before
+            saturation or the integrated state was not finite: the episode ends and the last finite state is kept),
             ``step`` (k + 1), ``u_cmd`` and ``u`` (commanded and applied input, N), ``f_ext`` (the external
             force, N), ``constraint_values`` (all rows ``g``, in option order), ``constraint_violation`` (any
             row violated).
 
-            A non-finite action (NaN, or an infinite action where no saturation catches it) never gives a
-            non-finite reward or cost: the state is kept (``nonfinite`` and ``terminated`` are true), the input
-            term of ``c`` charges each non-finite entry of ``u`` as the admissible input farthest from
-            ``u_ref`` (``max(|u_low - u_ref|, |u_high - u_ref|)`` per entry, the worst admissible cost), and a
-            constraint row whose value is not finite counts as violated (``NaN <= 0`` is false), so ``cost``
-            is 1 when the env has constraints.
+            A non-finite action (+inf, -inf or NaN in any entry, on every system) ends the episode and never
+            gives a non-finite reward or cost: the state is kept (``nonfinite`` and ``terminated`` are true), the
+            input term of ``c`` charges each non-finite entry of the input before saturation as the admissible
+            input farthest from ``u_ref`` (``max(|u_low - u_ref|, |u_high - u_ref|)`` per entry, the worst
+            admissible cost), and a constraint row whose value is not finite counts as violated (``NaN <= 0`` is
+            false), so an input constraint is violated. ``info["u"]`` is what saturation makes of the input (the
+            limit for +-inf, NaN for NaN); it does not reach the plant.
 
         Raises:
             ValueError: at trace time, when ``action`` is not of shape (nu,) or ``adversary`` not of the
@@ -504,7 +506,9 @@ class Env:
         u = jnp.clip(u_disturbed, u_low, u_high)
         f_ext = self._disturb("dynamics", state, params, noise, state.step) + extra["dynamics"]
         x_next = self.integrate(state.x, u, state.physics, f_ext)
-        finite = jnp.all(jnp.isfinite(x_next))
+        # Checked before saturation: clipping would turn +-inf into an admissible input and hide a broken policy.
+        finite_input = jnp.isfinite(u_disturbed)
+        finite = jnp.all(finite_input) & jnp.all(jnp.isfinite(x_next))
         x_next = jnp.where(finite, x_next, state.x)
         step = state.step + 1
 
@@ -514,7 +518,7 @@ class Env:
         # A non-finite input entry is charged as the worst admissible one, so the reward stays finite and its
         # input term is never better than that of an admissible action.
         worst_du = jnp.maximum(jnp.abs(u_low - u_ref), jnp.abs(u_high - u_ref))
-        du = jnp.where(jnp.isfinite(u), u - u_ref, worst_du)
+        du = jnp.where(finite_input, u - u_ref, worst_du)
         quadratic_cost = 0.5 * error @ params.Q @ error + 0.5 * du @ params.R @ du
         out_of_bounds = jnp.any((x_next < params.state_low) | (x_next > params.state_high))
         goal_reached = (

@@ -7,6 +7,7 @@ for minutes and then fails to save.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import tempfile
@@ -82,9 +83,9 @@ def _check_folder(folder: Path, target: Path) -> None:
         fd, probe = tempfile.mkstemp(dir=existing, prefix=".scg-jax-write-check.")
     except OSError as error:
         reason = error.strerror or type(error).__name__
-        raise ValueError(
-            f"cannot write results to {str(path)!r}: {str(existing)!r} is not writable ({reason})"
-        ) from None
+        # Permission and read-only errors mean "not writable"; others (e.g. ENOENT in /proc) that no file can be made.
+        what = "is not writable" if error.errno in (errno.EACCES, errno.EPERM, errno.EROFS) else "takes no new files"
+        raise ValueError(f"cannot write results to {str(path)!r}: {str(existing)!r} {what} ({reason})") from None
     os.close(fd)
     os.unlink(probe)
 

@@ -210,3 +210,17 @@ def test_training_with_copies_that_do_not_divide_names_the_option(cartpole, mesh
     learner = make_learner(options, env)
     with pytest.raises(ValueError, match=r"training.ppo.num_envs: 6 env copies do not split evenly over 4 devices"):
         run_training(learner, env, params, jax.random.key(0), tmp_path, progress=False, csv=False, mesh=mesh)
+
+
+def test_rollout_devices_are_recorded_in_metrics_json(mesh, tmp_path):
+    """``scg-jax rollout --devices 2`` lays its copies out over the first 2 devices and says so in metrics.json (that a
+    sharded rollout gives the single-device numbers is ``test_sharded_rollout_equals_the_single_device_one``)."""
+    import json
+
+    from scg_cli import main
+
+    args = ["rollout", "--system", "cartpole", "--episode-len", "0.5", "--num-envs", str(NUM_ENVS), "--devices", "2"]
+    assert main([*args, "--out", str(tmp_path)]) == 0
+    record = json.loads((tmp_path / "metrics.json").read_text())
+    assert record["devices"] == [str(device) for device in jax.devices()[:2]] and len(set(record["devices"])) == 2
+    assert record["summary"]["failure_rate"] == 0.0 and len(record["per_copy"]["rmse"]) == NUM_ENVS

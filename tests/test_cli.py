@@ -30,6 +30,9 @@ def test_lqr_rollout_stabilises_the_cartpole_and_writes_consistent_files(tmp_pat
     np.testing.assert_allclose(metrics["per_copy"]["rmse"], np.sqrt(data["mse"].mean(axis=0)), rtol=1e-5)
     K = np.asarray(metrics["gain"])
     assert K.shape == (1, 4) and K[0, 2] < 0  # pushes the cart under a pole leaning towards +x
+    import jax
+
+    assert metrics["devices"] == [str(jax.devices()[0])]  # one device without --devices (several: multidevice_cases)
 
 
 def test_zero_policy_lets_the_pole_fall(tmp_path):

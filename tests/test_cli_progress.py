@@ -1,15 +1,22 @@
 """The command line's progress display (``scg_cli.progress``): plain lines when piped, at least one every
-``--progress-interval`` seconds while a task runs, even when the library reports nothing (compiling)."""
+``--progress-interval`` seconds while a task runs, even when the library reports nothing (compiling), and from a
+command's start to its end; Ctrl-C in ``compare`` and ``eval`` (status 130, one line). The piped train is
+``tests/test_cli_train.py``'s."""
 
 from __future__ import annotations
 
 import io
+import re
+import signal
+import subprocess
+import sys
+import threading
 import time
+from pathlib import Path
 
 from rich.console import Console
 
 from scg_algorithms.progress import Task
-from scg_cli import main
 from scg_cli.progress import ConsoleProgress, format_seconds
 
 
@@ -63,8 +70,97 @@ def test_on_a_terminal_a_counted_task_leaves_its_last_line():
     assert "lqr: step 3/3 (100.0%), elapsed" in stream.getvalue()
 
 
-def test_a_piped_eval_reports_the_evaluation(tmp_path, capsys):
-    argv = ["eval", "--system", "cartpole", "--controller", "lqr", "--episodes", "4", "--episode-len", "1"]
-    assert main([*argv, "--progress-interval", "0.05", "--out", str(tmp_path / "e.json")]) == 0
-    lines = capsys.readouterr().out.splitlines()
-    assert lines[0].startswith("evaluating lqr on 4 episodes: elapsed 0:0")
+# ----------------------------------------------------------------------------------------------- as a user runs them
+# Piped through the installed entry point. The interval is small; a line may come a little late on a loaded machine
+# (the thread that keeps time waits for the CPU like everything else), hence the slack. Without the command's own task
+# the first lines came only when the harness started evaluating, after building every controller (20 s before).
+INTERVAL = 0.25
+SLACK = 2.0
+PROGRESS_LINE = re.compile(r"^[^:]+: .*elapsed \d+:\d\d")
+
+
+class _Piped:
+    """``scg-jax ARGS`` with stdout and stderr piped; a thread timestamps each stdout line as it arrives."""
+
+    def __init__(self, args, cwd):
+        self.process = subprocess.Popen(
+            [str(Path(sys.prefix) / "bin" / "scg-jax"), *args],
+            cwd=cwd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        self.lines: list[tuple[float, str]] = []
+        self.reader = threading.Thread(target=self._read, daemon=True)
+        self.reader.start()
+
+    def _read(self):
+        for line in self.process.stdout:
+            self.lines.append((time.monotonic(), line.rstrip("\n")))
+
+    def wait_for(self, condition, timeout=300.0):
+        deadline = time.monotonic() + timeout
+        while not condition([text for _, text in self.lines]):
+            assert self.process.poll() is None, f"ended early: {self.lines} {self.process.stderr.read()}"
+            assert time.monotonic() < deadline, f"timed out: {self.lines}"
+            time.sleep(0.01)
+
+    def finish(self, timeout=300.0) -> tuple[int, list[tuple[float, str]], str]:
+        status = self.process.wait(timeout)
+        self.reader.join(timeout)
+        return status, self.lines, self.process.stderr.read()
+
+
+def _gaps(lines) -> list[float]:
+    return [b - a for (a, _), (b, _) in zip(lines, lines[1:], strict=False)]
+
+
+def test_piped_compare_prints_every_interval_from_its_start_and_ctrl_c_exits_130(tmp_path):
+    """The first line is the command's own (before the env and the controller are built), then one at least every
+    --progress-interval seconds through building, compiling and evaluating (host-side, step by step); Ctrl-C during
+    the evaluation: status 130, one line, no traceback."""
+    (tmp_path / "configs").symlink_to(Path(__file__).resolve().parents[1] / "configs")
+    args = ["compare", "--config", "configs/cartpole_stabilization.yaml", "--set", "env.episode_len_sec=3",
+            "--controllers", "nonlinear_mpc", "--episodes", "3", "--progress-interval", str(INTERVAL)]  # fmt: skip
+    run = _Piped(args, tmp_path)
+    run.wait_for(lambda lines: any(line.startswith("evaluating nonlinear_mpc") for line in lines[:-2]))
+    run.process.send_signal(signal.SIGINT)
+    status, lines, err = run.finish()
+    assert status == 130 and err == "", err
+    texts = [text for _, text in lines]
+    assert texts[0].startswith("compare nonlinear_mpc: elapsed 0:0")
+    assert all(PROGRESS_LINE.match(text) for text in texts[:-1]), texts
+    assert texts[-1] == "interrupted; nothing written"
+    assert max(_gaps(lines[:-1])) <= INTERVAL + SLACK, list(zip(_gaps(lines), texts[1:], strict=True))
+
+
+def test_piped_eval_prints_every_interval_through_compilation_evaluation_and_writing(tmp_path):
+    """A JAX controller: the closed loop is one jitted call (compiled, then run), then the files are written; a line
+    at least every interval from the command's own first line to the table."""
+    out = tmp_path / "e.json"
+    args = ["eval", "--system", "cartpole", "--controller", "lqr", "--episodes", "4", "--episode-len", "1",
+            "--progress-interval", str(INTERVAL), "--out", str(out)]  # fmt: skip
+    status, lines, err = _Piped(args, tmp_path).finish()
+    assert status == 0 and err == "", err
+    texts = [text for _, text in lines]
+    table = next(i for i, text in enumerate(texts) if not PROGRESS_LINE.match(text))
+    assert texts[0].startswith("eval lqr: elapsed 0:0") and table > 2
+    assert any(t.startswith("evaluating lqr on 4 episodes") for t in texts[:table])
+    assert any(t.startswith(f"writing {out}") for t in texts[:table])
+    assert max(_gaps(lines[:table])) <= INTERVAL + SLACK, list(zip(_gaps(lines), texts[1:], strict=False))
+    assert out.is_file() and out.with_suffix(".png").is_file() and any(t.startswith("wrote ") for t in texts[table:])
+
+
+def test_piped_eval_ctrl_c_after_the_first_progress_line_exits_130_with_one_line(tmp_path):
+    out = tmp_path / "e.json"
+    args = ["eval", "--system", "cartpole", "--controller", "lqr", "--episodes", "4",
+            "--progress-interval", str(INTERVAL), "--out", str(out)]  # fmt: skip
+    run = _Piped(args, tmp_path)
+    run.wait_for(lambda lines: len(lines) >= 1)
+    run.process.send_signal(signal.SIGINT)
+    status, lines, err = run.finish()
+    texts = [text for _, text in lines]
+    assert status == 130 and err == "" and "Traceback" not in " ".join(texts), err
+    assert texts[0].startswith("eval lqr: elapsed 0:0") and texts[-1] == "interrupted; nothing written"
+    assert all(PROGRESS_LINE.match(text) for text in texts[:-1]), texts
+    assert not any(tmp_path.iterdir())

@@ -1,7 +1,11 @@
 """``scg-jax train``: a folder holding a run, --resume / --overwrite, Ctrl-C, progress in a log, extending a run."""
 
+import io
 import json
+import re
 import shlex
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -49,6 +53,20 @@ def test_resume_of_another_algorithms_run_says_so_plainly(tmp_path, capsys):
     assert "holds a ppo run, not sac; resume it with --algo ppo" in message
 
 
+def test_resume_on_a_folder_without_a_run_refuses_naming_resume_and_the_folder(tmp_path, capsys):
+    """A typo in --out with --resume must not start a whole new run in the new folder."""
+    missing, empty = tmp_path / "typo", tmp_path / "empty"
+    empty.mkdir()
+    for out, what in ((missing, "does not exist"), (empty, "holds no run to resume (no checkpoint.json)")):
+        assert main(["train", "--system", "cartpole", "--algo", "ppo", "--out", str(out), "--resume"]) == 2
+        captured = capsys.readouterr()
+        assert captured.out == "" and captured.err.splitlines() == [
+            f"scg-jax train: error: argument --resume: {out} {what}; check --out, or leave out --resume to start a "
+            "new run there"
+        ]
+    assert not missing.exists() and not any(empty.iterdir())
+
+
 @pytest.mark.parametrize(
     ("flags", "message"),
     [
@@ -85,13 +103,56 @@ def test_ctrl_c_prints_the_checkpoint_and_the_resume_command(tmp_path, capsys, m
     assert "training.ppo.num_envs=16" in words and "--overwrite" not in words
 
 
-def test_train_logs_progress_lines_and_extends_a_finished_run(tmp_path, capsys):
-    """Piped output (not a terminal) gets plain progress lines; --resume with a raised budget continues the run (that
-    it ends where a run of that budget in one go ends is tests/test_rl_common.py's, on the same driver)."""
+def test_ctrl_c_before_the_first_checkpoint_gives_the_command_that_starts_again(tmp_path, capsys, monkeypatch):
+    """Nothing to resume (and --resume would be refused): the command starts the run again, with --overwrite when the
+    interrupted attempt left files that would otherwise be refused."""
     out = tmp_path / "run"
-    common = ["train", *_ENV, "--algo", "ppo", "--eval-episodes", "2", "--progress-interval", "0.001"]
-    assert main([*common, *_TINY_PPO, "--out", str(out)]) == 0
-    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("ppo: iteration")]
+
+    def interrupted(learner, env, params, key, out_dir, **options):
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "progress.csv").write_text("iteration\n")  # the header the first attempt wrote
+        raise training.TrainingInterrupted(out_dir, 0, 2, None)
+
+    monkeypatch.setattr(training, "run_training", interrupted)
+    assert main(["train", *_ENV, *_TINY_PPO, "--algo", "ppo", "--out", str(out)]) == 130
+    printed = capsys.readouterr()
+    assert "interrupted before the first iteration completed; nothing saved. Start again with:" in printed.out
+    words = shlex.split(printed.out.strip().splitlines()[-1])
+    assert words[:2] == ["scg-jax", "train"] and "--resume" not in words and "--overwrite" in words
+
+
+class _StampedStdout(io.StringIO):
+    """A piped stdout (not a terminal) that notes when each line was written."""
+
+    def __init__(self):
+        super().__init__()
+        self.stamps: list[float] = []
+
+    def write(self, text):
+        self.stamps += [time.monotonic()] * text.count("\n")
+        return super().write(text)
+
+
+def test_train_logs_progress_lines_and_extends_a_finished_run(tmp_path, capsys, monkeypatch):
+    """Piped output (not a terminal) gets plain progress lines, at least one every --progress-interval seconds from the
+    command's first line to its table: set-up (env, learner, init), compilation, iterations, evaluation and writing
+    (a line may come a little late on a loaded machine, hence the slack); --resume with a raised budget continues the
+    run (that it ends where a run of that budget in one go ends is tests/test_rl_common.py's, on the same driver), and
+    resuming a finished run says that nothing was trained."""
+    out = tmp_path / "run"
+    interval, slack = 0.25, 2.0
+    common = ["train", *_ENV, "--algo", "ppo", "--eval-episodes", "2", "--progress-interval", str(interval)]
+    stdout = _StampedStdout()
+    with monkeypatch.context() as patch:
+        patch.setattr(sys, "stdout", stdout)
+        assert main([*common, *_TINY_PPO, "--out", str(out)]) == 0
+    texts = stdout.getvalue().splitlines()
+    table = next(i for i, text in enumerate(texts) if not re.match(r"^[^:]+: .*elapsed \d+:\d\d", text))
+    assert texts[0].startswith("train ppo: elapsed 0:0") and table > 3
+    assert any(t.startswith("compiling ppo") for t in texts) and any(t.startswith("evaluating ppo") for t in texts)
+    gaps = np.diff(stdout.stamps[:table])
+    assert gaps.max() <= interval + slack, list(zip(gaps, texts[1:table], strict=True))
+    lines = [line for line in texts if line.startswith("ppo: iteration")]
     assert lines and lines[-1].startswith("ppo: iteration 2/2 (100.0%), 512 env steps, ")
     # Twice the budget: resumed at iteration 2, on to 4.
     longer = [*_TINY_PPO, "--set", "training.ppo.total_env_steps=1024"]
@@ -99,6 +160,14 @@ def test_train_logs_progress_lines_and_extends_a_finished_run(tmp_path, capsys):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["training"]["resumed_from_iteration"] == 2 and metrics["training"]["env_steps"] == 1024
     assert len((out / "progress.csv").read_text().splitlines()) == 1 + 4  # header, iterations 1-4
+    assert "resumed at iteration 2: 1,024 env steps in all" in capsys.readouterr().out
+    # The same budget again: nothing to train, and the output says so (not "1,024 env steps in 1.7 s").
+    before = (out / "checkpoint.msgpack").read_bytes()
+    assert main([*common, *longer, "--out", str(out), "--resume"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert f"nothing to train: the run in {out} was already complete at iteration 4; it was evaluated again" in text
+    assert "ppo, already trained: 1,024 env steps, none this time" in text
+    assert (out / "checkpoint.msgpack").read_bytes() == before
     # Another setting than the budget is named.
     other = [*longer, "--set", "training.ppo.learning_rate=0.0003"]
     assert main([*common, *other, "--out", str(out), "--resume"]) == 2

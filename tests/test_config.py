@@ -134,6 +134,23 @@ def test_paper_settings():
     assert env.trajectory_shape == "figure8" and float(params.trajectory.scale) == pytest.approx(0.75)
 
 
+def test_make_from_config_takes_a_path_as_a_str_or_a_path():
+    """A path (str or Path) gives what the loaded Config gives: the same env structure and equal default params."""
+    path = CONFIG_DIR / "paper_quadrotor_2d.yaml"
+    env, params = make_from_config(load_config(path))
+    for source in (path, str(path)):
+        env_p, params_p = make_from_config(source)
+        assert (env_p.system.name, env_p.task, env_p.ctrl_freq, env_p.num_steps) == (
+            env.system.name, env.task, env.ctrl_freq, env.num_steps
+        )  # fmt: skip
+        for a, b in zip(jax.tree.leaves(params_p), jax.tree.leaves(params), strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(FileNotFoundError):
+        make_from_config(str(CONFIG_DIR / "no_such_config.yaml"))
+    with pytest.raises(TypeError, match="expected a Config, an EnvConfig or a path to a YAML file, got int"):
+        make_from_config(3)
+
+
 # --------------------------------------------------------------------------------------------- defaults
 def test_env_config_fields_and_defaults_are_makes():
     assert EnvConfig.option_names() == tuple(_OPTION_DEFAULTS)

@@ -110,6 +110,35 @@ def test_non_finite_state_ends_the_episode_with_a_flag_and_keeps_the_last_finite
 
 
 @pytest.mark.parametrize("name", ["cartpole", "quadrotor_1d", "quadrotor_2d", "quadrotor_3d"])
+def test_an_infinite_or_nan_action_ends_the_episode_like_a_non_finite_state(jitted_step, envs, name):
+    """+inf, -inf and NaN in one input entry end the episode on every system (saturation does not turn +-inf into
+    the actuator limit, which would let the episode go on): the state is kept, and the reward charges that entry
+    as the worst admissible input, c = 1/2 e'Qe + 1/2 R_00 max(|u_low - u_ref|, |u_high - u_ref|)^2."""
+    env, step = envs[name], jitted_step[name]
+    params = env.default_params
+    _, state = env.reset(jax.random.key(3), params)
+    x_ref, u_ref = (np.asarray(a, dtype=np.float64) for a in env.reference_at(0, params))
+    u_low, u_high = (np.asarray(a, dtype=np.float64) for a in env.input_bounds(params.physics))
+    error = np.asarray(state.x, dtype=np.float64) - np.asarray(env.reference_at(1, params)[0], dtype=np.float64)
+    worst = max(abs(u_low[0] - u_ref[0]), abs(u_high[0] - u_ref[0]))
+    c = 0.5 * error @ np.asarray(params.Q) @ error + 0.5 * float(params.R[0, 0]) * worst**2
+    assert env.reward_type == "quadratic"
+    for bad in (np.inf, -np.inf, np.nan):
+        action = u_ref.copy()
+        action[0] = bad
+        out = step(state, jnp.asarray(action, dtype=state.x.dtype), params)
+        assert bool(out.terminated) and bool(out.info["nonfinite"]) and not bool(out.truncated), bad
+        np.testing.assert_array_equal(np.asarray(out.state.x), np.asarray(state.x))
+        np.testing.assert_allclose(float(out.reward), -c, rtol=1e-5)
+        assert float(out.cost) == 0.0 and np.all(np.isfinite(np.asarray(out.obs)))
+    # The actuator limit itself is an admissible action: the episode goes on, charged its own finite input term.
+    at_limit = u_ref.copy()
+    at_limit[0] = u_high[0]
+    out = step(state, jnp.asarray(at_limit, dtype=state.x.dtype), params)
+    assert not bool(out.terminated) and not bool(out.info["nonfinite"])
+
+
+@pytest.mark.parametrize("name", ["cartpole", "quadrotor_1d", "quadrotor_2d", "quadrotor_3d"])
 def test_normalized_actions_convert_both_ways(name):
     env = scg_jax.make(name, action_mode="normalized")
     params = env.default_params

@@ -428,6 +428,34 @@ def test_rmse_axis_label_has_units():
     assert rmse_label(quadrotor, quadrotor.default_params) == "RMSE (m)"
 
 
+@pytest.mark.parametrize(("steps", "ctrl_freq"), [(65_536 * np.arange(1, 65), 15.0), (8_192 * np.arange(1, 5), 0.25)])
+def test_learning_curve_tick_labels_do_not_overlap_and_no_y_label_crowds_a_panel(tmp_path, steps, ctrl_freq):
+    """Up to 4,194,304 env steps (labels 0-4M, no "1e6" offset) and a log axis inside one decade (1-2-5 labels, no
+    minor "3x10^4" labels): within each panel no two x tick labels overlap, and no panel has a y label (its title
+    names the quantity), so nothing reaches into the panel on its left."""
+    from scg_algorithms.rl.curves import compact_number, learning_curve_figure
+
+    assert [compact_number(v) for v in (0, 500, 30_000, 1_500_000, 4_194_304, -2e9)] == [
+        "0", "500", "30k", "1.5M", "4.19M", "-2G"
+    ]  # fmt: skip
+    columns = ("env_steps", "episode_return", "episode_rmse", "episode_cost", "episode_length", "policy_loss")
+    rows = [(int(n), -100 + i, 1 / (i + 1), 10 / (i + 1), 250, 0.1) for i, n in enumerate(steps)]
+    (tmp_path / "p.csv").write_text("\n".join([",".join(columns)] + [",".join(map(str, r)) for r in rows]) + "\n")
+    fig = learning_curve_figure(tmp_path / "p.csv", "RMSE (weighted state error, mixed units)", ctrl_freq)
+    renderer = fig.canvas.get_renderer()
+    fig.draw(renderer)
+    assert len(fig.axes) == 6 and fig.axes[-1].get_xscale() == "log"
+    for ax in fig.axes:
+        assert ax.get_ylabel() == "" and ax.get_title()
+        labels = [t for t in ax.get_xticklabels() if t.get_visible() and t.get_text()]
+        assert len(labels) >= 2 and ax.xaxis.get_offset_text().get_text() == ""
+        boxes = sorted((t.get_window_extent(renderer) for t in labels), key=lambda box: box.x0)
+        assert all(a.x1 < b.x0 for a, b in zip(boxes, boxes[1:], strict=False)), [t.get_text() for t in labels]
+    for left, right in zip(fig.axes, fig.axes[1:], strict=False):  # the y tick labels stay clear of the neighbour
+        if abs(left.get_position().y0 - right.get_position().y0) < 1e-6:
+            assert right.get_tightbbox(renderer).x0 > left.get_window_extent(renderer).x1
+
+
 def test_a_policy_refuses_another_system(resume_runs):
     _, _, _, _, (whole_dir, _), _ = resume_runs
     assert load_metadata(whole_dir, "policy")["system"] == "cartpole"

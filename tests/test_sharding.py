@@ -33,7 +33,7 @@ def test_four_simulated_devices_give_the_single_device_numbers():
         timeout=500,
     )
     assert result.returncode == 0, result.stdout[-4000:] + result.stderr[-2000:]
-    assert "9 passed" in result.stdout
+    assert "10 passed" in result.stdout
 
 
 @pytest.mark.parametrize("value", [0, -2, 1.5, "some", True])

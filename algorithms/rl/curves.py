@@ -14,15 +14,21 @@ from scg_jax.files import write_atomic
 _POSITION_INDICES = {"cartpole": (0,), "quadrotor_1d": (0,), "quadrotor_2d": (0, 2), "quadrotor_3d": (0, 2, 4)}
 
 
-def rmse_label(env, params) -> str:
-    """Axis label of the episode RMSE: ``"RMSE (m)"`` when ``params.mse_weight`` weighs only positions with 1
-    (the quadrotors' default), otherwise a weighted full-state error of mixed units (the cart-pole's default)."""
+def rmse_unit(env, params) -> str:
+    """What the episode RMSE measures, as every table and plot names it: ``"m"`` when ``params.mse_weight`` weighs
+    only positions with 1 (the quadrotors' default: the position error), otherwise ``"weighted state error, mixed
+    units"`` (the cart-pole's default weighs all four states, m, m/s, rad and rad/s, with 1)."""
     weights = np.asarray(params.mse_weight)
     weighted = set(np.flatnonzero(weights).tolist())
     positions = set(_POSITION_INDICES.get(env.system.name, ()))
     if weighted and weighted <= positions and np.all(weights[list(weighted)] == 1.0):
-        return "RMSE (m)"
-    return "RMSE (weighted state error, mixed units)"
+        return "m"
+    return "weighted state error, mixed units"
+
+
+def rmse_label(env, params) -> str:
+    """Axis label of the episode RMSE: ``"RMSE (<rmse_unit>)"``, e.g. ``"RMSE (m)"``."""
+    return f"RMSE ({rmse_unit(env, params)})"
 
 
 CURVE_PANELS = (
@@ -45,13 +51,22 @@ def plot_learning_curve(
 
     ``nan`` entries (no episode had ended yet) are left out of the lines rather than drawn as 0.
     """
+    fig = learning_curve_figure(csv_path, rmse_label, ctrl_freq)
+    if fig is not None:
+        write_atomic(png_path, lambda file: fig.savefig(file, format="png", dpi=100))
+
+
+def learning_curve_figure(csv_path, rmse_label: str = "RMSE (weighted state error)", ctrl_freq: float | None = None):
+    """The matplotlib ``Figure`` that ``plot_learning_curve`` saves (None for a CSV without rows). Each panel's title
+    names its quantity (no y label, which would crowd the panel to its left), and the x tick labels are compact
+    (``compact_number``)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     with Path(csv_path).open(newline="") as file:
         rows = list(csv_lib.DictReader(file))
     if not rows:
-        return
+        return None
     columns = rows[0].keys()
     panels = [(name, label or rmse_label) for name, label in CURVE_PANELS if name in columns]
     panels += [(name, name) for name in columns if "loss" in name]
@@ -66,9 +81,9 @@ def plot_learning_curve(
         ax = fig.add_subplot(nrows, ncols, i + 1)
         values = np.array([float(row[name]) if row[name] != "" else math.nan for row in rows])
         ax.plot(steps, values, lw=1.2)
+        _compact_axis(ax.xaxis, log=False)
         ax.set_xlabel("env steps")
-        ax.set_ylabel(label, fontsize=9)
-        ax.set_title(label, fontsize=10)
+        ax.set_title(label, fontsize=10)  # the title names the quantity: a long y label would crowd the next panel
         ax.grid(alpha=0.3)
     if violation_panel:
         ax = fig.add_subplot(nrows, ncols, len(panels) + 1)
@@ -76,7 +91,30 @@ def plot_learning_curve(
                         ("episode_cost", "episode_length"))  # fmt: skip
         ax.plot(steps / ctrl_freq, cost / length, lw=1.2)
         ax.set_xscale("log")
+        _compact_axis(ax.xaxis, log=True)
         ax.set_xlabel("simulated training data (s)")
         ax.set_title("fraction of steps in violation", fontsize=10)
         ax.grid(alpha=0.3)
-    write_atomic(png_path, lambda file: fig.savefig(file, format="png", dpi=100))
+    return fig
+
+
+def compact_number(value: float, _position=None) -> str:
+    """A tick label of at most a few characters: ``500``, ``30k``, ``1.5M`` (no offset text or ``x10^n`` factors,
+    which overlapped the neighbouring labels)."""
+    for scale, suffix in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
+        if abs(value) >= scale:
+            return f"{value / scale:.3g}{suffix}"
+    return f"{value:.3g}"
+
+
+def _compact_axis(axis, log: bool) -> None:
+    """At most about five labelled ticks, each ``compact_number``; on a log axis 1, 2 and 5 per decade (so a range
+    inside one decade still gets labels) and no minor labels."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormatter
+
+    if log:
+        axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0), numticks=6))
+        axis.set_minor_formatter(NullFormatter())
+    else:
+        axis.set_major_locator(MaxNLocator(nbins=5))
+    axis.set_major_formatter(FuncFormatter(compact_number))
