@@ -137,7 +137,7 @@ def top(ctx, budget, failed: dict) -> tuple[dict, set, list[str], list[dict]]:
         curves.pop(method, None)
     if budget["rl_points"]:  # the learned CBF belongs to the learning comparison, not to the tiny profile
         cbf_rows, note = learned_cbf_curve(ctx, env, params, jax.random.key(7), budget["episodes"], budget["cbf"])
-        notes.append("learned_cbf: one run (seed-independent), beside every seed of the others in the claims")
+        notes.append("The learned CBF is one run (seed-independent), set beside every seed of the others in the claims")
         notes.append(note)
         if cbf_rows is None and "not available" in note:
             missing.add("learned_cbf")
