@@ -4,6 +4,7 @@ env's episode bookkeeping, the collector, exact step counters, and ``run_trainin
 
 import csv
 import json
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -300,6 +301,22 @@ def test_resume_with_another_config_names_the_settings_that_differ(resume_runs):
     assert "total_env_steps:" not in message  # the same budget: not listed
 
 
+def test_resume_of_a_checkpoint_older_than_an_option_counts_it_at_its_default(resume_runs, tmp_path):
+    """A field added to a learner after a checkpoint was written (absent from its saved config) counts at its
+    default: the run resumes when the current value is the default, and is refused, naming it, when not."""
+    env, params, key, learner, _, (split_dir, *_) = resume_runs
+    old = tmp_path / "old"
+    shutil.copytree(split_dir, old)
+    meta = json.loads((old / "checkpoint.json").read_text())
+    assert meta["config"].pop("ent_coef") == 0.0
+    (old / "checkpoint.json").write_text(json.dumps(meta))
+    resumed = run_training(learner, env, params, key, old, resume=True)
+    assert resumed["resumed_from_iteration"] == ITERATIONS and resumed["iterations"] == ITERATIONS
+    other = make_learner({**TINY_PPO, "ent_coef": 0.01}, env)
+    with pytest.raises(ValueError, match=r"ent_coef: 0\.0 in the checkpoint, 0\.01 now"):
+        run_training(other, env, params, key, old, resume=True)
+
+
 def test_resume_of_another_algorithm_says_so(resume_runs):
     env, params, key, _, _, (split_dir, *_) = resume_runs
     sac = sac_make_learner({"num_envs": 8, "total_env_steps": 64, "batch_size": 16, "buffer_size": 64}, env)
@@ -467,7 +484,8 @@ def test_collector_records_what_every_learner_needs():
         state = init_collector(train_env, key, params)
         return collect(train_env, params, state, act, jax.random.key(1), 6, info_keys=("constraint_values",))
 
-    state, steps, episode = run(jax.random.key(0))
+    state, steps, episode, labels = run(jax.random.key(0))
+    assert labels is None and "label" not in steps.extras
     assert steps.obs.shape == (6, 4, 4) and steps.action.shape == (6, 4, 1) and steps.adversary is None
     np.testing.assert_allclose(steps.extras["obs_sum"], np.sum(steps.obs, axis=-1), rtol=1e-6)
     # Force 0.3 * 10 N = 3 N against a 0.5 N bound: every step violates, cost 1.
@@ -499,6 +517,6 @@ def test_collector_passes_the_adversary_input_to_the_env():
         state = init_collector(train_env, key, params)
         return collect(train_env, params, state, act, jax.random.key(1), 4, info_keys=("u",))
 
-    _, steps, _ = run(jax.random.key(0))
+    steps = run(jax.random.key(0)).transitions
     np.testing.assert_allclose(steps.info["u"], 2.0, rtol=1e-6)
     np.testing.assert_array_equal(steps.adversary, 1.5)

@@ -53,7 +53,7 @@ class Options(cbf_lib.Options):
     """The CBF's options (``scg_algorithms.safety_filters.cbf.Options``) and the learning ones; a config's
     ``safety_filters.learned_cbf`` section. Errors name ``safety_filters.learned_cbf.KEY``."""
 
-    hidden_sizes: tuple | None = option((64.0, 64.0), "hidden layer sizes of the MLP x -> (a, b)")
+    hidden_sizes: tuple | None = option((64, 64), "hidden layer sizes of the MLP x -> (a, b)")
     activation: str = option("relu", "hidden activation", ("relu", "tanh", "elu", "gelu", "silu"))
     num_episodes: int = option(20, "blending episodes (the first uncertified, the last fully certified)")
     num_copies: int = option(256, "env copies that run each blending episode at once")
