@@ -32,6 +32,13 @@ def add_reproduce_parser(subparsers) -> argparse.ArgumentParser:
     )
     parser.add_argument("--seeds", type=positive_int, default=None, help="seeds (default: 1, paper profile 3)")
     parser.add_argument("--out", type=Path, default=Path("results/reproduce"), metavar="DIR", help="output folder")
+    parser.add_argument(
+        "--jobs",
+        type=positive_int,
+        default=2,
+        metavar="N",
+        help="run independent results in up to N processes (default 2, for 2 CPU cores; 1: one after another)",
+    )
     add_progress_argument(parser)
     return parser
 
@@ -49,6 +56,6 @@ def run_reproduce(args: argparse.Namespace, console) -> int:
     check_output(args.out, "dir")
     seeds = args.seeds if args.seeds is not None else (3 if args.profile == "paper" else 1)
     with command_progress(console, "reproduce", args.progress_interval) as progress:
-        reproduce(args.names, args.out, args.profile, seeds, progress)
+        reproduce(args.names, args.out, args.profile, seeds, progress, jobs=args.jobs)
     console.print(f"wrote {args.out}/report.md")
     return 0

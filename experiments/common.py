@@ -8,7 +8,13 @@ and writes each ``Section`` into ``report.md``.
 
 Caching: a trained policy, a learned GP or a learning curve lives in ``<cache>/<method>-<hash>/``, where the hash is
 over everything that determines it (the method, the full config text after overrides, the budget, the seed and
-``CACHE_VERSION``); a rerun finds it and only evaluates.
+``CACHE_VERSION``); a rerun finds it and only evaluates. Results may run in parallel processes (``reproduce(...,
+jobs=N)``): each entry is made under an exclusive lock on ``<cache>/<method>-<hash>.lock``, so a process that needs an
+entry another is making waits for it and then reads it, and no entry is written twice.
+
+Verdicts: a claim is judged on the median over seeds of each quantity it names, and says how many seeds' own numbers
+give the same verdict (``seed_claim``). A claim that needs an RL method to have converged reads ``NOT_CONVERGED``
+instead of ``FAILS`` outside the ``paper`` profile.
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
+import fcntl
 import hashlib
 import io
 import json
@@ -35,17 +42,25 @@ from scg_jax.files import write_atomic, write_json
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 PROFILES = ("tiny", "quick", "paper")
-CACHE_VERSION = 1  # bump when a cached artefact's meaning changes
+CACHE_VERSION = 2  # bump when a cached artefact's meaning changes
 
-# GP-MPC's learning loop per profile (over each config's controllers.gp_mpc), the same in every result that learns
-# on the same config, so they share one cached GP: rounds after the prior's data, episodes collected per round,
-# episodes each round is evaluated on.
+# GP-MPC's learning loop per profile, over each config's controllers.gp_mpc (which holds the original's loop for its
+# figure: rounds after the prior's data, episodes collected per round, episodes each round is evaluated on); the same
+# in every result that learns on the same config, so they share one cached GP.
 GP_MPC_LEARNING = {
-    "quick": {"rounds": 2, "train_episodes": 1, "eval_episodes": 2},
-    "paper": {"rounds": 6, "train_episodes": 2, "eval_episodes": 4},
+    "quick": {"rounds": 2, "eval_episodes": 2},
+    "paper": {},
 }
+# The solver of every GP-MPC the results learn and run: None keeps controllers.gp_mpc's default (IPOPT, one host
+# solve per copy and step); "sqp_rti" selects the batched SQP-RTI solver once controllers.gp_mpc has that option.
+GP_MPC_SOLVER: str | None = None
 
 HOLDS, FAILS, UNAVAILABLE, NOT_MEASURED = "holds", "does not hold", "method not available", "not measured"
+NOT_CONVERGED = "not converged at this budget (see the paper profile)"
+
+# The cart-pole's failure (the original's out-of-bounds, DESIGN.md): the cart leaves the track or the pole falls.
+CARTPOLE_TRACK_LIMIT = 2.4  # |x| (m)
+CARTPOLE_ANGLE_LIMIT = math.pi / 2  # |theta| (rad)
 
 
 # --------------------------------------------------------------------------------------------- context
@@ -57,7 +72,7 @@ class Context:
         out: the result's own folder (``<--out>/<NAME>``). cache: the shared cache folder (``<--out>/cache``).
         profile: ``tiny``, ``quick`` or ``paper``. seeds: training/evaluation seeds (``--seeds N`` gives 0..N-1).
         progress: where progress and messages go (``scg_algorithms.progress``; silent by default, the command line
-            draws them).
+            draws them). stats: ``cache_hits`` and ``cache_misses`` of this result's cached artefacts (``cached``).
     """
 
     out: Path
@@ -65,6 +80,7 @@ class Context:
     profile: str
     seeds: tuple[int, ...]
     progress: Progress = SILENT
+    stats: dict = dataclasses.field(default_factory=lambda: {"cache_hits": 0, "cache_misses": 0})
 
     def budget(self, profiles: Mapping[str, Mapping]) -> dict:
         """The result's budget for this profile."""
@@ -96,16 +112,58 @@ class Claim:
     verdict: str
     measured: str
     note: str = ""
+    seeds: str = ""  # how many seeds agree with the verdict, e.g. "2/3 seeds"; empty for a one-run claim
 
 
-def claim(text: str, holds: bool | None, measured: str, note: str = "", missing: Sequence[str] = ()) -> Claim:
-    """A ``Claim``; ``UNAVAILABLE`` (naming the methods) when a method it needs is missing, ``NOT_MEASURED`` when
-    ``holds`` is None (e.g. a NaN)."""
+def verdict(holds: bool, needs_convergence: bool = False, profile: str = "paper") -> str:
+    """``HOLDS`` or ``FAILS``; ``NOT_CONVERGED`` for a failing claim that needs an RL method to have converged, outside
+    the paper profile (its budgets are the paper's; the others' are not meant to converge)."""
+    if holds:
+        return HOLDS
+    return NOT_CONVERGED if needs_convergence and profile != "paper" else FAILS
+
+
+def claim(text: str, holds: bool | None, measured: str, note: str = "", missing: Sequence[str] = (), *,
+          needs_convergence: bool = False, profile: str = "paper") -> Claim:  # fmt: skip
+    """A one-run ``Claim``; ``UNAVAILABLE`` (naming the methods) when a method it needs is missing, ``NOT_MEASURED``
+    when ``holds`` is None (e.g. a NaN); otherwise ``verdict(holds, needs_convergence, profile)``."""
     if missing:
         return Claim(text, UNAVAILABLE, f"method {', '.join(missing)} not available in this build", note)
     if holds is None:
         return Claim(text, NOT_MEASURED, measured, note)
-    return Claim(text, HOLDS if holds else FAILS, measured, note)
+    return Claim(text, verdict(holds, needs_convergence, profile), measured, note)
+
+
+def seed_claim(text: str, values: Mapping[str, Sequence[float]], test: Callable[[Mapping[str, float]], bool],
+               measured: Callable[[Mapping[str, float]], str], note: str = "", *, needs_convergence: bool = False,
+               profile: str = "paper") -> Claim:  # fmt: skip
+    """A claim judged over seeds.
+
+    Args:
+        values: each quantity the claim names -> its value per seed (every sequence as long as the seeds; ``inf`` is
+            a value, e.g. "never", NaN is not measured).
+        test: the claim on one set of values (``{name: value}``), e.g. ``lambda v: v["gp_mpc"] < v["ppo"]``; a claim
+            that names several methods tests each of them.
+        measured: the text of the numbers behind the verdict, given the medians.
+        needs_convergence, profile: as ``verdict``.
+
+    Returns:
+        The ``Claim`` of ``test`` on the medians over seeds, its ``seeds`` field saying how many seeds' own values
+        give the same verdict ("2/3 seeds"); ``NOT_MEASURED`` when a value is NaN or missing.
+    """
+    lengths = {len(v) for v in values.values()}
+    if len(lengths) != 1 or 0 in lengths:
+        counts = {name: len(v) for name, v in values.items()}
+        return Claim(text, NOT_MEASURED, f"not measured: values per seed {counts}")
+    per_seed = {name: np.asarray(v, dtype=float) for name, v in values.items()}
+    if any(np.isnan(v).any() for v in per_seed.values()):
+        return Claim(text, NOT_MEASURED, "not measured: " + ", ".join(f"{k} {v.tolist()}" for k, v in per_seed.items()))
+    medians = {name: float(np.median(v)) for name, v in per_seed.items()}
+    holds = bool(test(medians))
+    seeds = lengths.pop()
+    agree = sum(bool(test({name: float(v[i]) for name, v in per_seed.items()})) == holds for i in range(seeds))
+    text_measured = measured(medians) + (f" (median over {seeds} seeds)" if seeds > 1 else "")
+    return Claim(text, verdict(holds, needs_convergence, profile), text_measured, note, f"{agree}/{seeds} seeds")
 
 
 @dataclasses.dataclass
@@ -125,7 +183,7 @@ class Section:
         if self.claims:
             lines += ["| claim | verdict | measured | note |", "|---|---|---|---|"]
             for c in self.claims:
-                cells = (c.text, f"**{c.verdict}**", c.measured, c.note)
+                cells = (c.text, f"**{c.verdict}**" + (f" ({c.seeds})" if c.seeds else ""), c.measured, c.note)
                 lines.append("| " + " | ".join(str(cell).replace("|", "\\|") for cell in cells) + " |")
             lines.append("")
         lines += [f"- {note}" for note in self.notes]
@@ -208,6 +266,20 @@ def repo_configs(pattern: str) -> list[Path]:
 
 
 # --------------------------------------------------------------------------------------------- training (cached)
+@contextlib.contextmanager
+def cached(ctx: Context, directory: Path, marker: str):
+    """Whether the cache entry ``directory`` is complete (its file ``marker`` exists), yielded while this process
+    holds an exclusive lock on ``<directory>.lock``: a process that finds it incomplete makes it inside the block,
+    and another process asking for the same entry meanwhile waits and then finds it complete. Counts the hit or miss
+    in ``ctx.stats``."""
+    directory.parent.mkdir(parents=True, exist_ok=True)
+    with open(directory.parent / f"{directory.name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, also if the block raises
+        hit = (directory / marker).is_file()
+        ctx.stats["cache_hits" if hit else "cache_misses"] += 1
+        yield hit
+
+
 def train_policy(ctx: Context, algo: str, cfg, seed: int, total_env_steps: int, env, params):
     """A policy trained by ``scg_algorithms.train_run`` (as ``scg-jax train --algo ALGO`` does) on ``cfg`` (a
     ``scg_jax.Config``) with the budget ``total_env_steps``, as a controller for ``env``/``params``; cached (the
@@ -217,42 +289,55 @@ def train_policy(ctx: Context, algo: str, cfg, seed: int, total_env_steps: int, 
 
     text = scg_jax.dump_config(cfg)
     directory = ctx.cache / f"{algo}-{config_hash(algo, text, seed, total_env_steps)}"
-    if not (directory / "metrics.json").is_file():
-        directory.mkdir(parents=True, exist_ok=True)
-        config_file = directory / "config.yaml"
-        write_atomic(config_file, lambda f: f.write(text.encode()))
-        ctx.log(f"  training {algo} (seed {seed}, {total_env_steps:,} env steps) -> {directory}")
-        train_run(algo, cfg, directory, seed=seed, total_env_steps=total_env_steps, overwrite=True, eval_episodes=2,
-                  progress=ctx.progress, record={"config_file": str(config_file)})  # fmt: skip
+    with cached(ctx, directory, "metrics.json") as hit:
+        if not hit:
+            directory.mkdir(parents=True, exist_ok=True)
+            config_file = directory / "config.yaml"
+            write_atomic(config_file, lambda f: f.write(text.encode()))
+            ctx.log(f"  training {algo} (seed {seed}, {total_env_steps:,} env steps) -> {directory}")
+            train_run(algo, cfg, directory, seed=seed, total_env_steps=total_env_steps, overwrite=True,
+                      eval_episodes=2, progress=ctx.progress, record={"config_file": str(config_file)})  # fmt: skip
     metrics = json.loads((directory / "metrics.json").read_text())
     return load_policy(directory, env, params), metrics
+
+
+def gp_mpc_options(options: Mapping) -> dict:
+    """``options`` for ``controllers.gp_mpc`` with the results' solver (``GP_MPC_SOLVER``) when one is set."""
+    return {**dict(options), **({"solver": GP_MPC_SOLVER} if GP_MPC_SOLVER else {})}
 
 
 def learn_gp_mpc(ctx: Context, name: str, overrides: Sequence[str], seed: int, prior_scale: float, options: Mapping):
     """GP-MPC learned by ``scg_algorithms.train_run`` on the env of ``experiments/configs/<name>.yaml`` with
     ``overrides``, from the prior ``prior_scale`` times the true inertial parameters, with ``options`` over the
-    config's ``controllers.gp_mpc``; cached. Returns ``(folder, history)``: load the controller for an env with
-    ``load_gp_mpc``; ``history`` rows are the learning rounds (``data_seconds``, ``rmse``,
-    ``constraint_violation_steps``, ...)."""
+    config's ``controllers.gp_mpc``; cached. The learning env's cost weights ``Q``, ``R`` are the GP-MPC's
+    (``q_diag``, ``r_diag``), as in the original, whose GP-MPC configs give the env's cost: they set the weights of
+    round 0's exploring LQR on the prior (the figure's ``Q`` may be the RL reward's, which no controller can use).
+    Returns ``(folder, history)``: load the controller for an env with ``load_gp_mpc``; ``history`` rows are the
+    learning rounds (``data_seconds``, ``rmse``, ``constraint_violation_steps``, ...)."""
     from scg_algorithms.runs import train_run
 
     cfg, _, _ = load(name, overrides)
-    options = {**dict(cfg.controllers.get("gp_mpc") or {}), **dict(options), "seed": seed}
+    options = gp_mpc_options({**dict(cfg.controllers.get("gp_mpc") or {}), **dict(options), "seed": seed})
+    weights = [f"env.{key}={list(options[field])}" for key, field in (("Q", "q_diag"), ("R", "r_diag"))
+               if options.get(field) is not None]  # fmt: skip
+    cfg, _, _ = load(name, [*overrides, *weights])
     directory = ctx.cache / f"gp_mpc-{config_hash('gp_mpc', scg_jax.dump_config(cfg), options, prior_scale)}"
-    if not (directory / "gp_mpc.json").is_file():
-        ctx.log(f"  learning gp_mpc on {name} (seed {seed}, {options.get('rounds')} rounds) -> {directory}")
-        learning = scg_jax.load_config(cfg, values={"controllers.gp_mpc": options})
-        train_run("gp_mpc", learning, directory, seed=seed, overwrite=True, eval_episodes=None,
-                  prior_scale=prior_scale, progress=ctx.progress, record={"overrides": list(overrides)})  # fmt: skip
+    with cached(ctx, directory, "gp_mpc.json") as hit:
+        if not hit:
+            ctx.log(f"  learning gp_mpc on {name} (seed {seed}, {options.get('rounds')} rounds) -> {directory}")
+            learning = scg_jax.load_config(cfg, values={"controllers.gp_mpc": options})
+            train_run("gp_mpc", learning, directory, seed=seed, overwrite=True, eval_episodes=None,
+                      prior_scale=prior_scale, progress=ctx.progress,
+                      record={"overrides": list(overrides)})  # fmt: skip
     return directory, json.loads((directory / "gp_mpc.json").read_text())["history"]
 
 
 def load_gp_mpc(directory: Path, env, params, prior_scale: float = 1.5, options: Mapping | None = None):
     """The GP-MPC saved in ``directory`` as a controller for ``env`` (prior: ``prior_scale`` times ``params``'s
-    inertial parameters)."""
+    inertial parameters), with ``options`` over its saved MPC options (the GP stays as learned)."""
     from scg_algorithms.gp_mpc.run import load_run
 
-    return load_run(directory, env, scg_jax.prior_params(env, params, prior_scale), options)
+    return load_run(directory, env, scg_jax.prior_params(env, params, prior_scale), gp_mpc_options(options or {}))
 
 
 def learning_curve(ctx: Context, algo: str, cfg, seed: int, points: Sequence[int], eval_env, eval_params, episodes: int,
@@ -265,15 +350,21 @@ def learning_curve(ctx: Context, algo: str, cfg, seed: int, points: Sequence[int
     ``violation_fraction`` (steps in violation over episode length), ``failure_rate``, ``wall_s`` and what
     ``score(evaluation)`` adds.
     """
+    text = scg_jax.dump_config(cfg)
+    directory = ctx.cache / f"{algo}-curve-{config_hash(algo, text, seed, list(points), episodes, eval_env.num_steps)}"
+    with cached(ctx, directory, "curve.json") as hit:
+        if not hit:
+            rows = _learn_curve(ctx, algo, cfg, seed, points, eval_env, eval_params, episodes, score)
+            write_json(directory / "curve.json", {"algo": algo, "seed": seed, "rows": rows})
+    return json.loads((directory / "curve.json").read_text())["rows"]
+
+
+def _learn_curve(ctx, algo, cfg, seed, points, eval_env, eval_params, episodes, score) -> list[dict]:
+    """``learning_curve``'s rows, computed (no cache)."""
     from scg_algorithms.base import JaxController
     from scg_algorithms.evaluation import make_evaluator
     from scg_algorithms.rl.envs import policy_action_to_input
 
-    text = scg_jax.dump_config(cfg)
-    directory = ctx.cache / f"{algo}-curve-{config_hash(algo, text, seed, list(points), episodes, eval_env.num_steps)}"
-    cached = directory / "curve.json"
-    if cached.is_file():
-        return json.loads(cached.read_text())["rows"]
     env, params = scg_jax.make_from_config(cfg)
     options = {**dict(cfg.training.get(algo) or {}), "total_env_steps": int(points[-1])}
     config, learner = build_learner(algo, options, env)
@@ -317,7 +408,6 @@ def learning_curve(ctx: Context, algo: str, cfg, seed: int, points: Sequence[int
         }
         rows.append(row)
         ctx.log(f"    {steps:>10,} steps ({row['data_seconds']:.0f} s of data): RMSE {row['rmse']:.4f}")
-    write_json(cached, {"algo": algo, "seed": seed, "rows": rows})
     return rows
 
 
@@ -346,6 +436,16 @@ def rmse_dims(evaluation, dims: Sequence[int] | None = None) -> float:
     if dims is not None:
         diff = diff[..., list(dims)]
     return float(np.mean(np.sqrt(np.mean(np.sum(diff**2, axis=-1), axis=0))))
+
+
+def cartpole_failed(x) -> np.ndarray:
+    """Which cart-pole episodes failed: ``x`` (T + 1, N, 4) states of whole episodes (reset to the last step) ->
+    (N,) bool, True where the cart left the track (|x| > 2.4 m) or the pole fell (|theta| > pi/2) at some step, or
+    the state stopped being finite."""
+    x = np.asarray(x, dtype=float)
+    with np.errstate(invalid="ignore"):
+        out = (np.abs(x[..., 0]) > CARTPOLE_TRACK_LIMIT) | (np.abs(x[..., 2]) > CARTPOLE_ANGLE_LIMIT)
+    return np.any(out | ~np.all(np.isfinite(x), axis=-1), axis=0)
 
 
 def ratio_text(a: float, b: float) -> str:
