@@ -9,9 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from scg_algorithms.rl import replay
 from scg_algorithms.rl.counter import count_value
 from scg_algorithms.rl.normalization import init_stats
-from scg_algorithms.sac import Config, losses, make_learner, make_policy_from_config, make_train, parse_config, replay
+from scg_algorithms.sac import Config, losses, make_learner, make_policy_from_config, make_train, parse_config
 from tests.rl_helpers import learner_fixtures, load_saved_policy, train_tiny_run
 
 # 100 iterations of 8 transitions, 2 gradient steps each after 25 warm-up iterations (200 transitions); the buffer
@@ -259,7 +260,7 @@ def test_warm_up_then_learning_and_the_buffer_wraps(seeds_run):
     # first step (a step of -lr in log alpha: the initial policy's entropy is above the target -1).
     np.testing.assert_allclose(metrics["alpha"][:, :WARMUP_ITERATIONS], 0.1, rtol=1e-6)
     np.testing.assert_allclose(metrics["alpha"][:, WARMUP_ITERATIONS], 0.1 * (1 + math.exp(-1e-3)) / 2, rtol=1e-6)
-    assert np.all(np.abs(np.exp(state.log_alpha) - 0.1) > 1e-4)
+    assert np.all(np.abs(np.exp(state.learning.log_alpha) - 0.1) > 1e-4)
     # 800 transitions through a 400-slot buffer: full, and the write position back at slot 0.
     np.testing.assert_array_equal(state.buffer.size, 400)
     np.testing.assert_array_equal(state.buffer.position, 0)
