@@ -9,15 +9,18 @@ in ``_SUBCOMMANDS``):
   paper's metrics; writes the JSON, the trajectories (.npz) and a plot (.png).
 - ``compare``: several controllers on the same episodes, side by side. Both ``eval`` and ``compare`` take
   ``--filter NAME|DIR`` (a safety filter around every controller; ``scg_algorithms.safety_filters``).
-- ``train``: a JAX learner (PPO, SAC, safety-layer PPO, PPO-Lagrangian, RARL, RAP) with the config's
+- ``train``: a JAX learner (PPO, SAC, DDPG, TD3, safety-layer PPO, PPO-Lagrangian, RARL, RAP) with the config's
   ``training.ALGO`` hyperparameters, or GP-MPC's learning loop with its ``controllers.gp_mpc`` options, or a
   learned CBF (``--algo learned_cbf``); writes the policy (or the GP, or the
   filter), checkpoints, the learning curve and ``metrics.json`` (training summary and an evaluation).
+- ``tune``: a hyperparameter study of a learner or an MPC (``scg_algorithms.tune``: Optuna, TPE, median pruner,
+  a CVaR objective, optionally P trials trained as one vmapped population); writes the study, ``best.yaml``,
+  ``trials.csv`` and a plot.
 - ``sweep``: controllers over a grid of config values and seeds as tasks, in-process or on Ray; one table.
 - ``reproduce``: the paper's results (``scg_experiments``): data, plots and ``report.md`` with each claim's verdict.
 
 Modules: ``common`` (environment options, the ``--out`` check, usage errors, tables), ``scale`` (``--devices``,
-``--distributed``), ``rollout``, ``evaluate`` (eval and compare), ``train``, ``sweep``, ``reproduce``.
+``--distributed``), ``rollout``, ``evaluate`` (eval and compare), ``train``, ``tune``, ``sweep``, ``reproduce``.
 
 ``main(argv) -> int`` never raises ``SystemExit`` itself: it returns 0 on success and 2 on bad input (argparse's
 convention), so it can be called from tests and from the console script alike.
@@ -36,12 +39,14 @@ from scg_cli.reproduce import add_reproduce_parser, run_reproduce
 from scg_cli.rollout import add_rollout_parser, run_rollout
 from scg_cli.sweep import add_sweep_parser, run_sweep_command
 from scg_cli.train import add_train_parser, run_train
+from scg_cli.tune import add_tune_parser, run_tune
 
 _SUBCOMMANDS: dict[str, tuple[Callable, Callable]] = {
     "rollout": (add_rollout_parser, run_rollout),
     "eval": (add_eval_parser, run_eval),
     "compare": (add_compare_parser, run_compare),
     "train": (add_train_parser, run_train),
+    "tune": (add_tune_parser, run_tune),
     "sweep": (add_sweep_parser, run_sweep_command),
     "reproduce": (add_reproduce_parser, run_reproduce),
 }
