@@ -18,21 +18,13 @@ from scg_algorithms.rl.counter import count_value
 from scg_algorithms.rl.normalization import init_stats
 from scg_algorithms.rl.policy import policy_controller
 from scg_jax.config import load_config, make_from_config
+from tests import rl_helpers
 from tests.rl_helpers import learner_fixtures, load_saved_policy, train_tiny_run
 
-# 100 iterations of 8 transitions, 2 gradient steps each after 25 warm-up iterations: with TD3's delay of 2, one actor
-# update per iteration. The buffer holds 400 transitions, so it wraps around twice.
-TINY = {
-    "total_env_steps": 800,
-    "num_envs": 8,
-    "utd": 0.25,
-    "warmup_steps": 200,
-    "batch_size": 32,
-    "buffer_size": 400,
-    "hidden_sizes": [16, 16],
-}
+# TD3's delay of 2 with 2 gradient steps per iteration: one actor update per learning iteration.
+TINY = rl_helpers.TINY_OFF_POLICY
 NUM_SEEDS = 3
-WARMUP_ITERATIONS, NUM_ITERATIONS, GRAD_STEPS = 25, 100, 2
+WARMUP_ITERATIONS, NUM_ITERATIONS, GRAD_STEPS = rl_helpers.TINY_OFF_POLICY_SCHEDULE
 
 cartpole, seeds_run = learner_fixtures(td3.make_train, TINY, NUM_SEEDS)
 
@@ -205,12 +197,8 @@ def trained_dir(cartpole, tmp_path_factory, seeds_run):
 
 def test_run_training_equals_make_train_and_the_saved_policy_acts_alike(cartpole, seeds_run, trained_dir):
     env, _ = cartpole
-    _, (state, _), _ = seeds_run
-    _, learner, policy_params, result = trained_dir
-    assert result["iterations"] == NUM_ITERATIONS and result["env_steps"] == 800
-    lane0 = jax.tree.map(lambda x: x[0], state)
-    for a, b in zip(jax.tree.leaves(policy_params.actor), jax.tree.leaves(lane0.actor), strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    _, learner, policy_params, _ = trained_dir
+    rl_helpers.check_run_training_equals_make_train(seeds_run, trained_dir, NUM_ITERATIONS, 800)
     obs, loaded, actions = load_saved_policy(cartpole, trained_dir, "td3", 800)
     np.testing.assert_array_equal(loaded, actions(learner.make_policy(policy_params)))
     assert float(jnp.std(loaded)) > 1e-4

@@ -103,19 +103,12 @@ def _algorithm(config: Config, action_size: int) -> off_policy.Algorithm:
     num_critics, delay = (2 if config.twin_critics else 1), config.policy_delay
 
     def init(key_actor, key_critic, dummy_obs, dummy_action) -> Learning:
-        actor_params = actor.init(key_actor, dummy_obs)
-        critic_params = jax.vmap(critic.init, in_axes=(0, None, None))(
-            jax.random.split(key_critic, num_critics), dummy_obs, dummy_action
+        actor_params, critic_params = off_policy.init_networks(
+            actor, critic, num_critics, key_actor, key_critic, dummy_obs, dummy_action
         )
-        return Learning(
-            actor=actor_params,
-            critic=critic_params,
-            target_actor=actor_params,
-            target_critic=critic_params,
-            actor_opt=actor_tx.init(actor_params),
-            critic_opt=critic_tx.init(critic_params),
-            phase=jnp.zeros((), jnp.int32),
-        )
+        optimizers = actor_tx.init(actor_params), critic_tx.init(critic_params)
+        # The targets start as copies of the networks; no critic update has happened yet (phase 0).
+        return Learning(actor_params, critic_params, actor_params, critic_params, *optimizers, jnp.zeros((), jnp.int32))
 
     def update(carry: Learning, keys, batch) -> tuple[Learning, dict]:
         (key_noise,) = keys
@@ -126,13 +119,9 @@ def _algorithm(config: Config, action_size: int) -> off_policy.Algorithm:
         next_q = twin_q(critic, carry.target_critic, next_obs, next_action)
         target = jax.lax.stop_gradient(losses.critic_target(batch["reward"], batch["terminated"], next_q, config.gamma))
 
-        def critic_objective(c_params):
-            q = twin_q(critic, c_params, obs, batch["action"])
-            return losses.critic_loss(q, target), q
-
-        (critic_loss, q), critic_grads = jax.value_and_grad(critic_objective, has_aux=True)(carry.critic)
-        updates, critic_opt = critic_tx.update(critic_grads, carry.critic_opt, carry.critic)
-        critic_params = optax.apply_updates(carry.critic, updates)
+        critic_params, critic_opt, critic_loss, q = off_policy.critic_step(
+            critic, critic_tx, carry.critic, carry.critic_opt, obs, batch["action"], target
+        )
         phase = (carry.phase + 1) % delay
 
         def improve(_):

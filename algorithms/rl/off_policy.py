@@ -36,6 +36,7 @@ from scg_algorithms.rl import replay
 from scg_algorithms.rl.collector import ActOutput, CollectorState, collect, init_collector
 from scg_algorithms.rl.config import check_budget, hidden_sizes_option, learner_option
 from scg_algorithms.rl.counter import Count, add_count, count_at_least, zero_count
+from scg_algorithms.rl.networks import twin_q
 from scg_algorithms.rl.normalization import RunningStats, normalize
 from scg_algorithms.rl.training import Learner, raw_key
 
@@ -45,6 +46,8 @@ __all__ = [
     "PolicyParams",
     "RunnerState",
     "critic_loss",
+    "critic_step",
+    "init_networks",
     "make_learner",
     "make_optimizer",
     "polyak_update",
@@ -149,6 +152,29 @@ def critic_loss(q, target):
 def polyak_update(target, online, tau):
     """``target <- (1 - tau) target + tau online`` leaf by leaf (pytrees of equal structure)."""
     return jax.tree.map(lambda t, o: (1.0 - tau) * t + tau * o, target, online)
+
+
+def init_networks(actor, critic, num_critics: int, key_actor, key_critic, obs, action) -> tuple:
+    """``(actor params, critic params)``: the flax ``actor`` initialised at ``obs``, and ``num_critics`` critics
+    initialised from ``split(key_critic, num_critics)`` at ``(obs, action)``, stacked on a leading axis."""
+    critic_keys = jax.random.split(key_critic, num_critics)
+    return actor.init(key_actor, obs), jax.vmap(critic.init, in_axes=(0, None, None))(critic_keys, obs, action)
+
+
+def critic_step(critic, optimizer, critic_params, opt_state, obs, action, target) -> tuple:
+    """One optimiser step of the K stacked critics (``critic_loss`` towards ``target``, gradient stopped).
+
+    Returns:
+        ``(critic params, optimiser state, loss, q)``: ``q`` (K, B) the critics at ``(obs, action)`` before the step.
+    """
+
+    def objective(params):
+        q = twin_q(critic, params, obs, action)
+        return critic_loss(q, target), q
+
+    (loss, q), grads = jax.value_and_grad(objective, has_aux=True)(critic_params)
+    updates, opt_state = optimizer.update(grads, opt_state, critic_params)
+    return optax.apply_updates(critic_params, updates), opt_state, loss, q
 
 
 def make_optimizer(learning_rate, max_grad_norm: float):

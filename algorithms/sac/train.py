@@ -127,9 +127,8 @@ def _algorithm(config: Config, action_size: int) -> off_policy.Algorithm:
     target_entropy = config.target_entropy_per_action * action_size
 
     def init(key_actor, key_critic, dummy_obs, dummy_action) -> Learning:
-        actor_params = actor.init(key_actor, dummy_obs)
-        critic_params = jax.vmap(critic.init, in_axes=(0, None, None))(
-            jax.random.split(key_critic, 2), dummy_obs, dummy_action
+        actor_params, critic_params = off_policy.init_networks(
+            actor, critic, 2, key_actor, key_critic, dummy_obs, dummy_action
         )
         log_alpha = jnp.asarray(math.log(config.init_alpha), jnp.float32)
         return Learning(
@@ -158,13 +157,9 @@ def _algorithm(config: Config, action_size: int) -> off_policy.Algorithm:
         target = losses.critic_target(batch["reward"], batch["terminated"], next_q, next_log_prob, alpha, config.gamma)
         target = jax.lax.stop_gradient(target)
 
-        def critic_objective(c_params):
-            q = twin_q(critic, c_params, obs, batch["action"])
-            return losses.critic_loss(q, target), q
-
-        (critic_loss, q), critic_grads = jax.value_and_grad(critic_objective, has_aux=True)(carry.critic)
-        updates, critic_opt = critic_tx.update(critic_grads, carry.critic_opt, carry.critic)
-        critic_params = optax.apply_updates(carry.critic, updates)
+        critic_params, critic_opt, critic_loss, q = off_policy.critic_step(
+            critic, critic_tx, carry.critic, carry.critic_opt, obs, batch["action"], target
+        )
 
         def actor_objective(a_params):
             mean, log_std = actor.apply(a_params, obs)
