@@ -57,7 +57,7 @@ def make_population_train(algo: str, config, env, names: Sequence[str]) -> Calla
         ValueError: ``names`` holds an option the learner does not have, or one that is not a float.
     """
     section = learner_spec(algo).section
-    make_train = learner_part(algo, "make_train")
+    make_train = _make_train(algo)
     fields = {field.name: field for field in dataclasses.fields(config)}
     for name in names:
         if name not in fields:
@@ -70,6 +70,20 @@ def make_population_train(algo: str, config, env, names: Sequence[str]) -> Calla
         return make_train(traced, env)(key, params)
 
     return jax.vmap(train_one, in_axes=(0, None, 0))
+
+
+def _make_train(algo: str) -> Callable:
+    """``make_train(config, env)`` of the learner: its module's own where it has one (SAC's and DDPG's keep their
+    warm-up a real branch under ``jax.vmap``), else ``rl.learner.make_train`` of its ``make_learner``."""
+    from scg_algorithms.learners import LEARNERS
+    from scg_algorithms.registry import resolve
+    from scg_algorithms.rl import learner as learner_lib
+
+    module = resolve(LEARNERS[algo].module)
+    if hasattr(module, "make_train"):
+        return module.make_train
+    make_learner = learner_part(algo, "make_learner")
+    return lambda config, env: learner_lib.make_train(make_learner(config, env))
 
 
 def stack_values(members: Sequence[Mapping[str, float]], names: Sequence[str]) -> dict:
