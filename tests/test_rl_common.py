@@ -4,6 +4,7 @@ env's episode bookkeeping, the collector, exact step counters, and ``run_trainin
 
 import csv
 import json
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -298,6 +299,22 @@ def test_resume_with_another_config_names_the_settings_that_differ(resume_runs):
     assert "learning_rate: 0.001 in the checkpoint, 0.0003 now" in message
     assert "num_epochs: 2 in the checkpoint, 3 now" in message
     assert "total_env_steps:" not in message  # the same budget: not listed
+
+
+def test_resume_of_a_checkpoint_older_than_an_option_counts_it_at_its_default(resume_runs, tmp_path):
+    """A field added to a learner after a checkpoint was written (absent from its saved config) counts at its
+    default: the run resumes when the current value is the default, and is refused, naming it, when not."""
+    env, params, key, learner, _, (split_dir, *_) = resume_runs
+    old = tmp_path / "old"
+    shutil.copytree(split_dir, old)
+    meta = json.loads((old / "checkpoint.json").read_text())
+    assert meta["config"].pop("ent_coef") == 0.0
+    (old / "checkpoint.json").write_text(json.dumps(meta))
+    resumed = run_training(learner, env, params, key, old, resume=True)
+    assert resumed["resumed_from_iteration"] == ITERATIONS and resumed["iterations"] == ITERATIONS
+    other = make_learner({**TINY_PPO, "ent_coef": 0.01}, env)
+    with pytest.raises(ValueError, match=r"ent_coef: 0\.0 in the checkpoint, 0\.01 now"):
+        run_training(other, env, params, key, old, resume=True)
 
 
 def test_resume_of_another_algorithm_says_so(resume_runs):

@@ -34,6 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from scg_algorithms.base import parse_options
 from scg_algorithms.progress import SILENT, Progress, Task, as_progress, running
 from scg_algorithms.rl.checkpoint import load_checkpoint, load_metadata, save_checkpoint
 from scg_algorithms.rl.counter import Count, count_value
@@ -298,7 +299,12 @@ def _env_section(config_text: str) -> dict:
 def _check_resumable(meta: dict, checkpoint_file: Path, learner: Learner, config: dict, env_config) -> None:
     """FieldError at ``resume`` naming what keeps the checkpoint ``meta`` (of ``learner``'s algorithm) from being
     continued with ``config`` and ``env_config``."""
-    differences = config_differences(meta.get("config") or {}, config, ignore=("total_env_steps",))
+    saved = dict(meta.get("config") or {})
+    # A field added to the learner since the checkpoint was written counts at its default, the value that
+    # reproduces the older code's behaviour (e.g. RARL's num_adversaries, always 1 before it was an option).
+    defaults = config_dict(parse_options(type(learner.config), None, f"training.{learner.name}"))
+    saved = {**{name: value for name, value in defaults.items() if name not in saved}, **saved}
+    differences = config_differences(saved, config, ignore=("total_env_steps",))
     if differences:
         raise FieldError(
             "resume",
