@@ -36,6 +36,8 @@ import sys
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, ClassVar, NamedTuple, Protocol, runtime_checkable
 
+import jax
+
 from scg_jax import validation as V
 
 
@@ -176,7 +178,11 @@ def parse_options(cls, options: Mapping | None, path: str):
 
     Fields are declared with ``option``: a field's default fixes its type, its ``choices`` and ``check`` what it
     may hold. A class may define ``_check(self, path)`` for checks across fields. An instance built directly is
-    checked the same way (its fields are parsed again), so no unchecked options reach a method.
+    checked the same way (its fields are parsed again), so no unchecked options reach a method. The one exception
+    is a field holding a traced JAX value (inside ``jax.jit``/``jax.vmap``: a hyperparameter of a population
+    trained as one vmapped program, ``scg_algorithms.tune.population``): it is kept as it is and the checks across
+    fields are left out, because a traced value has no number to check; the population checks each member's
+    concrete options before it traces them.
 
     Args:
         cls: the dataclass. options: a mapping of field names to values, ``None`` for all defaults, or an
@@ -194,9 +200,13 @@ def parse_options(cls, options: Mapping | None, path: str):
         raise V.FieldError(path, f"expected a mapping of options, got {V.show(options)}")
     fields = {field.name: field for field in dataclasses.fields(cls)}
     V.check_keys(options, path, fields)
-    result = cls(**{key: _check_value(f"{path}.{key}", value, fields[key]) for key, value in options.items()})
+    traced = {key for key, value in options.items() if isinstance(value, jax.core.Tracer)}
+    result = cls(**{
+        key: value if key in traced else _check_value(f"{path}.{key}", value, fields[key])
+        for key, value in options.items()
+    })  # fmt: skip
     check = getattr(result, "_check", None)
-    if check is not None:
+    if check is not None and not traced:
         check(path)
     return result
 

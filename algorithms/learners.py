@@ -62,6 +62,8 @@ LEARNERS: dict[str, LearnerSpec] = {
     for spec in (
         _jax("ppo", "scg_algorithms.ppo", "PPO, clipped policy gradient"),
         _jax("sac", "scg_algorithms.sac", "soft actor-critic"),
+        _jax("ddpg", "scg_algorithms.ddpg", "DDPG, deterministic actor-critic"),
+        _jax("td3", "scg_algorithms.ddpg.td3", "TD3, twin critics and a delayed actor"),
         _on_prior("gp_mpc", "scg_algorithms.gp_mpc.controller", "GP-MPC, a GP of the prior's error", "round"),
         _on_prior(
             "learned_cbf", "scg_algorithms.safety_filters.learned_cbf", "a learned CBF filter", "episode", "filter"

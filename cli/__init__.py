@@ -13,11 +13,14 @@ in ``_SUBCOMMANDS``):
   ``training.ALGO`` hyperparameters, GP-MPC's learning loop with its ``controllers.gp_mpc`` options, a learned CBF)
   through ``scg_algorithms.train_run``; writes the policy (or the GP, or the filter), checkpoints, the learning
   curve and ``metrics.json`` (training summary and an evaluation).
+- ``tune``: a hyperparameter study of a learner or an MPC (``scg_algorithms.tune``: Optuna, TPE, median pruner,
+  a CVaR objective, optionally P trials trained as one vmapped population); writes the study, ``best.yaml``,
+  ``trials.csv`` and a plot.
 - ``sweep``: controllers over a grid of config values and seeds as tasks, in-process or on Ray; one table.
 - ``reproduce``: the paper's results (``scg_experiments``): data, plots and ``report.md`` with each claim's verdict.
 
 Modules: ``common`` (environment options, the ``--out`` check, usage errors, tables), ``scale`` (``--devices``,
-``--distributed``), ``rollout``, ``evaluate`` (eval and compare), ``train``, ``sweep``, ``reproduce``.
+``--distributed``), ``rollout``, ``evaluate`` (eval and compare), ``train``, ``tune``, ``sweep``, ``reproduce``.
 
 ``main(argv) -> int`` never raises ``SystemExit`` itself: it returns 0 on success, 2 on bad input (argparse's
 convention; the message is one line, ``scg-jax CMD: error: ...``) and 130 on Ctrl-C (one line saying what was kept),
@@ -38,6 +41,7 @@ from scg_cli.reproduce import add_reproduce_parser, run_reproduce
 from scg_cli.rollout import add_rollout_parser, run_rollout
 from scg_cli.sweep import add_sweep_parser, run_sweep_command
 from scg_cli.train import add_train_parser, run_train
+from scg_cli.tune import add_tune_parser, run_tune
 
 _NOTHING_WRITTEN = "interrupted; nothing written"
 # name -> (add its parser, run it, what Ctrl-C leaves behind: a line formatted with the parsed arguments).
@@ -47,6 +51,7 @@ _SUBCOMMANDS: dict[str, tuple[Callable, Callable, str]] = {
     "compare": (add_compare_parser, run_compare, _NOTHING_WRITTEN),
     # train reports its own interruptions (the checkpoint and the resume command); this is for Ctrl-C before training.
     "train": (add_train_parser, run_train, "interrupted before training started; nothing written"),
+    "tune": (add_tune_parser, run_tune, "interrupted before the study started; nothing written"),
     "sweep": (
         add_sweep_parser,
         run_sweep_command,

@@ -52,6 +52,21 @@ def train_tiny_run(make_learner, options, cartpole, tmp_path_factory, seeds_run,
     return out_dir, learner, policy_params, result
 
 
+# The off-policy learners' tiny runs: 100 iterations of 8 transitions, 2 gradient steps each after 25 warm-up
+# iterations (200 transitions); the buffer holds 400 transitions, so it wraps around twice.
+TINY_OFF_POLICY = {
+    "total_env_steps": 800,
+    "num_envs": 8,
+    "utd": 0.25,
+    "warmup_steps": 200,
+    "batch_size": 32,
+    "buffer_size": 400,
+    "hidden_sizes": [16, 16],
+}
+TINY_OFF_POLICY_SCHEDULE = (25, 100, 2)
+"""Warm-up iterations, iterations and gradient steps per iteration of ``TINY_OFF_POLICY``."""
+
+
 def tiny_ppo(total_env_steps: int, num_epochs: int, num_minibatches: int) -> dict:
     """A tiny PPO config: 8 copies x 16 steps an iteration, 16-unit hidden layers."""
     return {
@@ -105,3 +120,18 @@ def load_saved_policy(cartpole, trained_dir, name: str, env_steps: int):
         return jax.jit(jax.vmap(lambda o: policy_action_to_input(env, policy(o), params.physics)))(obs)
 
     return obs, jax.jit(jax.vmap(lambda o: controller.act((), o, 0, None)[0]))(obs), actions
+
+
+def check_run_training_equals_make_train(seeds_run, trained_dir, iterations: int, env_steps: int) -> None:
+    """The host driver (a fori_loop of ``update``, warm-up chosen by ``lax.cond``) ran the same iterations as
+    ``make_train`` (scans): the run's summary counts, and its saved actor and normaliser equal seed 0's lane of
+    ``seeds_run`` to float rounding."""
+    import numpy as np
+
+    _, (state, _), _ = seeds_run
+    _, _, policy_params, result = trained_dir
+    assert result["iterations"] == iterations and result["env_steps"] == env_steps
+    lane0 = jax.tree.map(lambda x: x[0], state)
+    for a, b in zip(jax.tree.leaves(policy_params.actor), jax.tree.leaves(lane0.actor), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(policy_params.obs_stats.mean, lane0.obs_stats.mean, rtol=1e-5, atol=1e-6)

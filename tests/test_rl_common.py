@@ -29,9 +29,9 @@ from scg_algorithms.rl.envs import (
 )
 from scg_algorithms.rl.normalization import RunningStats, init_stats, normalize, update_stats
 from scg_algorithms.rl.policy import load_policy, trained_system
+from scg_algorithms.rl.replay import ReplayBuffer
 from scg_algorithms.rl.training import TrainingInterrupted, run_training
 from scg_algorithms.sac import make_learner as sac_make_learner
-from scg_algorithms.sac.replay import ReplayBuffer
 from tests.rl_helpers import tiny_ppo
 
 

@@ -9,24 +9,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from scg_algorithms.rl import replay
 from scg_algorithms.rl.counter import count_value
 from scg_algorithms.rl.normalization import init_stats
-from scg_algorithms.sac import Config, losses, make_learner, make_policy_from_config, make_train, parse_config, replay
+from scg_algorithms.sac import Config, losses, make_learner, make_policy_from_config, make_train, parse_config
+from tests import rl_helpers
 from tests.rl_helpers import learner_fixtures, load_saved_policy, train_tiny_run
 
-# 100 iterations of 8 transitions, 2 gradient steps each after 25 warm-up iterations (200 transitions); the buffer
-# holds 400 transitions, so it wraps around twice.
-TINY = {
-    "total_env_steps": 800,
-    "num_envs": 8,
-    "utd": 0.25,
-    "warmup_steps": 200,
-    "batch_size": 32,
-    "buffer_size": 400,
-    "hidden_sizes": [16, 16],
-}
+TINY = rl_helpers.TINY_OFF_POLICY
 NUM_SEEDS = 4
-WARMUP_ITERATIONS, NUM_ITERATIONS, GRAD_STEPS = 25, 100, 2
+WARMUP_ITERATIONS, NUM_ITERATIONS, GRAD_STEPS = rl_helpers.TINY_OFF_POLICY_SCHEDULE
 
 
 cartpole, seeds_run = learner_fixtures(make_train, TINY, NUM_SEEDS)
@@ -259,7 +251,7 @@ def test_warm_up_then_learning_and_the_buffer_wraps(seeds_run):
     # first step (a step of -lr in log alpha: the initial policy's entropy is above the target -1).
     np.testing.assert_allclose(metrics["alpha"][:, :WARMUP_ITERATIONS], 0.1, rtol=1e-6)
     np.testing.assert_allclose(metrics["alpha"][:, WARMUP_ITERATIONS], 0.1 * (1 + math.exp(-1e-3)) / 2, rtol=1e-6)
-    assert np.all(np.abs(np.exp(state.log_alpha) - 0.1) > 1e-4)
+    assert np.all(np.abs(np.exp(state.learning.log_alpha) - 0.1) > 1e-4)
     # 800 transitions through a 400-slot buffer: full, and the write position back at slot 0.
     np.testing.assert_array_equal(state.buffer.size, 400)
     np.testing.assert_array_equal(state.buffer.position, 0)
@@ -276,13 +268,7 @@ def trained_dir(cartpole, tmp_path_factory, seeds_run):
 def test_run_training_equals_make_train(seeds_run, trained_dir):
     """The host driver (a fori_loop of ``update``, warm-up chosen by ``lax.cond``) runs the same iterations as
     ``make_train`` (two scans)."""
-    _, (state, _), _ = seeds_run
-    _, _, policy_params, result = trained_dir
-    assert result["iterations"] == NUM_ITERATIONS and result["env_steps"] == 800
-    lane0 = jax.tree.map(lambda x: x[0], state)
-    for a, b in zip(jax.tree.leaves(policy_params.actor), jax.tree.leaves(lane0.actor), strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(policy_params.obs_stats.mean, lane0.obs_stats.mean, rtol=1e-5, atol=1e-6)
+    rl_helpers.check_run_training_equals_make_train(seeds_run, trained_dir, NUM_ITERATIONS, 800)
 
 
 def test_saved_policy_acts_like_the_trained_one(cartpole, trained_dir):

@@ -2,7 +2,9 @@
 
 - ``MLP``: dense layers with orthogonal initialisation; ``value_network`` (PPO's critic, or a cost critic) is one.
 - ``TanhGaussianActor``: SAC's policy head, ``obs -> (mean, log_std)`` of the pre-squash Gaussian.
-- ``QNetwork`` and ``twin_q``: SAC's soft Q critics, two parameter sets stacked on a leading axis.
+- ``DeterministicActor``: DDPG's and TD3's policy, ``obs -> tanh(net(obs))``.
+- ``QNetwork`` and ``twin_q``: the off-policy learners' Q critics, K parameter sets stacked on a leading axis (two
+  for SAC's and TD3's twin critics, one for DDPG's).
 """
 
 from __future__ import annotations
@@ -88,6 +90,22 @@ class TanhGaussianActor(nn.Module):
         return mean, jnp.clip(log_std, self.log_std_min, self.log_std_max)
 
 
+class DeterministicActor(nn.Module):
+    """Deterministic policy ``obs (..., obs_size) -> a = tanh(net(obs)) (..., action_size)`` in [-1, 1].
+
+    The last layer starts small (as ``TanhGaussianActor``'s): every copy starts near ``a = 0``, far from the
+    saturated tanh.
+    """
+
+    hidden: tuple[int, ...]
+    action_size: int
+    activation: str = "relu"
+
+    @nn.compact
+    def __call__(self, obs):
+        return jnp.tanh(MLP((*self.hidden, self.action_size), self.activation, final_scale=0.01)(obs))
+
+
 class QNetwork(nn.Module):
     """One Q network: ``(obs (..., obs_size), action (..., action_size)) -> Q (...)``."""
 
@@ -100,5 +118,6 @@ class QNetwork(nn.Module):
 
 
 def twin_q(critic: QNetwork, critic_params, obs, action):
-    """Both critics: ``critic_params`` holds two parameter sets stacked on a leading axis. Returns (2, ...)."""
+    """Every critic: ``critic_params`` holds K parameter sets stacked on a leading axis (two for twin critics).
+    Returns (K, ...)."""
     return jax.vmap(critic.apply, in_axes=(0, None, None))(critic_params, obs, action)

@@ -4,7 +4,8 @@ Conventions: a batch has B transitions; actions live in [-1, 1]^nu as ``a = tanh
 ``u ~ N(mean, exp(log_std)^2)`` (the pre-squash sample ``u``); ``alpha`` is the entropy temperature; log-probs are
 of the squashed action ``a`` (nats). Every function is differentiable with ``jax.grad`` and has worked-number tests
 in ``tests/test_sac.py``. The tanh-Gaussian density and sampler are the learners' shared ones
-(``scg_algorithms.rl.distributions``), re-exported here.
+(``scg_algorithms.rl.distributions``), and the critics' regression loss and the Polyak update the off-policy
+skeleton's (``scg_algorithms.rl.off_policy``), re-exported here.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from scg_algorithms.rl.distributions import (
     sample_tanh_gaussian,
     tanh_gaussian_log_prob,
 )
+from scg_algorithms.rl.off_policy import critic_loss, polyak_update
 
 __all__ = [
     "actor_loss",
@@ -48,19 +50,6 @@ def critic_target(reward, terminated, next_q, next_log_prob, alpha, gamma):
     return reward + gamma * (1.0 - terminated.astype(reward.dtype)) * soft_value
 
 
-def critic_loss(q, target):
-    """Twin-critic regression loss ``sum_j 1/2 mean_b (Q_j(s_b, a_b) - y_b)^2``.
-
-    Args:
-        q: (2, B) both critics at the replayed ``(s, a)``. target: (B,) from ``critic_target`` (gradient stopped
-            here).
-
-    Returns:
-        scalar loss.
-    """
-    return 0.5 * jnp.sum(jnp.mean((q - jax.lax.stop_gradient(target)[None]) ** 2, axis=-1))
-
-
 def actor_loss(q, log_prob, alpha):
     """Policy loss ``mean_b (alpha log pi(a_b|s_b) - min_j Q_j(s_b, a_b))`` with ``a_b`` the reparameterised sample.
 
@@ -88,8 +77,3 @@ def temperature_loss(log_alpha, log_prob, target_entropy):
         scalar loss.
     """
     return jnp.mean(jnp.exp(log_alpha) * (-jax.lax.stop_gradient(log_prob) - target_entropy))
-
-
-def polyak_update(target, online, tau):
-    """``target <- (1 - tau) target + tau online`` leaf by leaf (pytrees of equal structure)."""
-    return jax.tree.map(lambda t, o: (1.0 - tau) * t + tau * o, target, online)
