@@ -484,6 +484,16 @@ def save_figure(figure, path: Path) -> str:
     return path.name
 
 
+def style_system_axis(axis, system: str, xlabel: str, ylabel: str) -> None:
+    """Label a panel of one system's results: axis labels (the y label notes "(x, z)" on a quadrotor, whose error
+    counts x and z only), the system as title, a light grid and a small legend."""
+    axis.set_xlabel(xlabel)
+    axis.set_ylabel(ylabel + (" (x, z)" if system.startswith("quadrotor") else ""))
+    axis.set_title(system)
+    axis.grid(alpha=0.3)
+    axis.legend(fontsize=7)
+
+
 def pyplot():
     """matplotlib's pyplot on the headless Agg backend."""
     import matplotlib

@@ -22,28 +22,22 @@ from scg_experiments import common
 NAME = "control_performance"
 TITLE = "Control performance (Figs 4 and 5)"
 
+
+def _budget(profile: str, episodes: int, cartpole: dict, quadrotor_circle: dict) -> dict:
+    return {
+        "systems": ["cartpole", "quadrotor_circle"],
+        "episodes": episodes,
+        "rl_steps": {"cartpole": cartpole, "quadrotor_circle": quadrotor_circle},
+        "gp_mpc": common.GP_MPC_LEARNING[profile],
+    }
+
+
 # systems: config names; rl_steps: training budget per learner and system (env steps); gp_mpc: learning-loop
 # options over the config's controllers.gp_mpc.
 PROFILES = {
     "tiny": {"systems": ["cartpole"], "episodes": 2, "rl_steps": {}, "gp_mpc": None},
-    "quick": {
-        "systems": ["cartpole", "quadrotor_circle"],
-        "episodes": 4,
-        "rl_steps": {
-            "cartpole": {"ppo": 1_048_576, "sac": 60_000},
-            "quadrotor_circle": {"ppo": 2_097_152, "sac": 60_000},
-        },
-        "gp_mpc": common.GP_MPC_LEARNING["quick"],
-    },
-    "paper": {
-        "systems": ["cartpole", "quadrotor_circle"],
-        "episodes": 10,
-        "rl_steps": {
-            "cartpole": {"ppo": 4_194_304, "sac": 150_000},
-            "quadrotor_circle": {"ppo": 8_388_608, "sac": 300_000},
-        },
-        "gp_mpc": common.GP_MPC_LEARNING["paper"],
-    },
+    "quick": _budget("quick", 4, {"ppo": 1_048_576, "sac": 60_000}, {"ppo": 2_097_152, "sac": 60_000}),
+    "paper": _budget("paper", 10, {"ppo": 4_194_304, "sac": 150_000}, {"ppo": 8_388_608, "sac": 300_000}),
 }
 
 EVAL = ["env.done_on_out_of_bounds=false"]
@@ -143,11 +137,7 @@ def run(ctx: common.Context) -> common.Section:
         for name, (t, err) in curves.items():
             axis.plot(t, err, label=name, linestyle="--" if name == "lqr_10hz" else "-")
         axis.set_yscale("log")
-        axis.set_xlabel("time (s)")
-        axis.set_ylabel("|Δe| (mean over episodes)" + (" (x, z)" if system.startswith("quadrotor") else ""))
-        axis.set_title(system)
-        axis.grid(alpha=0.3)
-        axis.legend(fontsize=7)
+        common.style_system_axis(axis, system, "time (s)", "|Δe| (mean over episodes)")
         series = [{"method": n, "t_s": t.tolist(), "error_norm": e.tolist()} for n, (t, e) in curves.items()]
         section.files.append(common.write_data(ctx.out / f"{system}_error.json", series))
     section.files.append(common.write_csv(ctx.out / "scores.csv", rows))
