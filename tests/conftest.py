@@ -1,4 +1,15 @@
-"""Shared fixtures. Tests that need float64 wrap their body in ``with jax.enable_x64(True):``."""
+"""Shared fixtures. Tests that need float64 wrap their body in ``with jax.enable_x64(True):``.
+
+One JAX persistent compilation cache serves the whole test run: the pytest process creates it in a temporary
+folder and hands it on through ``JAX_COMPILATION_CACHE_DIR`` to the xdist workers and to every CLI subprocess a
+test starts, so a computation compiled once (the same env step, rollout or training loop, built afresh by another
+test or process) is loaded instead of compiled again. It is removed when the run ends. A run started with
+``JAX_COMPILATION_CACHE_DIR`` already set uses that folder and keeps it.
+"""
+
+import os
+import shutil
+import tempfile
 
 import jax
 import pytest
@@ -6,6 +17,27 @@ import pytest
 import scg_jax
 
 SYSTEM_NAMES = tuple(scg_jax.SYSTEMS)
+_CACHE_ENV = "JAX_COMPILATION_CACHE_DIR"
+# Compilations shorter than this are not stored: loading them would cost about what compiling them does.
+_MIN_COMPILE_SECONDS = "0.2"
+
+
+def pytest_configure(config):
+    if not hasattr(config, "workerinput") and _CACHE_ENV not in os.environ:  # the controlling process, once
+        config._scg_compile_cache = tempfile.mkdtemp(prefix="scg-jax-test-compile-cache-")
+        os.environ[_CACHE_ENV] = config._scg_compile_cache
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", _MIN_COMPILE_SECONDS)
+    # jax read its environment when this module imported it: set the options it read as well.
+    jax.config.update("jax_compilation_cache_dir", os.environ[_CACHE_ENV])
+    jax.config.update(
+        "jax_persistent_cache_min_compile_time_secs", float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"])
+    )
+
+
+def pytest_unconfigure(config):
+    folder = getattr(config, "_scg_compile_cache", None)
+    if folder is not None:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.fixture(scope="session")

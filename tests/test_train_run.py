@@ -132,7 +132,7 @@ def test_an_argument_the_learner_cannot_take_is_named(tmp_path, algo, options, f
 
 
 def test_unknown_learners_and_progress_values_are_refused(tmp_path):
-    with pytest.raises(ValueError, match="algo: unknown name 'ppo2'; allowed values are ppo, sac, gp_mpc, "):
+    with pytest.raises(ValueError, match="algo: unknown name 'ppo2'; allowed values are ppo, sac, ddpg, td3, gp_mpc, "):
         train_run("ppo2", CONFIG, tmp_path)
     with pytest.raises(TypeError, match="progress: expected a scg_algorithms.progress.Progress, a function or None"):
         train_run("ppo", CONFIG, tmp_path, progress="bar")
