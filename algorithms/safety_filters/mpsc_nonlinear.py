@@ -35,7 +35,13 @@ from scg_algorithms.base import option, parse_options, positive, weight_diagonal
 from scg_algorithms.lqr import discrete_lqr_gain
 from scg_algorithms.mpc.linear import _constraint_rows
 from scg_algorithms.safety_filters import mpsc_tightening as tight
-from scg_algorithms.safety_filters.base import FilterInfo
+from scg_algorithms.safety_filters.base import (
+    BACKUP_CONTROLLER,
+    BACKUP_PLAN,
+    CERTIFIED,
+    FilterInfo,
+    applied_correction,
+)
 
 PATH = "safety_filters.nonlinear_mpsc"
 TIGHTENINGS = ("reachable", "none")
@@ -56,6 +62,7 @@ class Options:
     )
     tightening: str = option("reachable", "per-stage tightening from the model error, or none", choices=TIGHTENINGS)
     n_samples: int = option(600, "plant transitions sampled for the model-error bound")
+    plant_draws: int = option(8, "plants drawn from the env's physics randomisation for the samples (1: nominal)")
     sample_seed: int = option(0, "seed of the samples")
     sample_half_width: tuple | None = option(
         None, "(nx,) half-widths of the box around the goal the sampled states fill; default: the env's init box"
@@ -69,7 +76,7 @@ class Options:
     warm_start: bool = option(True, "start IPOPT from the previous plan shifted by one step")
 
     def _check(self, path: str) -> None:
-        for name in ("horizon", "n_samples", "max_iter"):
+        for name in ("horizon", "n_samples", "plant_draws", "max_iter"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{path}.{name}: must be a positive integer, got {getattr(self, name)!r}")
         positive(f"{path}.tol", self.tol)
@@ -128,7 +135,7 @@ class NonlinearMPSC:
         if opts.tightening != "none" or opts.model_bias:
             plant = env.default_params if plant_params is None else plant_params
             x, u, x_next = tight.sample_transitions(
-                env, plant, opts.n_samples, opts.sample_seed, opts.sample_half_width
+                env, plant, opts.n_samples, opts.sample_seed, opts.sample_half_width, opts.plant_draws
             )
             predicted = np.asarray(model.fd.map(x.shape[0])(x.T, u.T), dtype=np.float64).T
             self.errors = x_next - predicted
@@ -206,6 +213,7 @@ class NonlinearMPSC:
             x_guess[0] = x
             u_guess = np.concatenate([filter_state["u_plan"][1:], filter_state["u_plan"][-1:]])
         X, U, success = self.solve(x, u_l, x_guess, u_guess)
+        applied = CERTIFIED
         if success:
             u = U[0]
             state = {"x_plan": X, "u_plan": U, "kinf": 0}
@@ -213,11 +221,14 @@ class NonlinearMPSC:
             kinf = min(filter_state["kinf"] + 1, H)
             if kinf < H and filter_state["x_plan"] is not None:
                 u = filter_state["u_plan"][kinf] - self.K @ (x - filter_state["x_plan"][kinf])
+                applied = BACKUP_PLAN
             else:
                 u = self.u_eq - self.K @ (x - self.x_goal)
+                applied = BACKUP_CONTROLLER
             state = {**filter_state, "kinf": kinf}
         u = np.clip(u, self.u_low, self.u_high)
-        return u, state, FilterInfo(feasible=success, slack=0.0, correction=u - u_l)
+        correction = applied_correction(u, u_l, self.u_low, self.u_high, np)
+        return u, state, FilterInfo(feasible=success, slack=0.0, correction=correction, applied=applied)
 
 
 def make_nonlinear_mpsc(env, prior_params, options=None, plant_params=None) -> NonlinearMPSC:

@@ -29,7 +29,7 @@ import numpy as np
 SDP_SOLVERS = ("clarabel", "scs")
 
 
-def sample_transitions(env, plant_params, count: int, seed: int, half_width=None):
+def sample_transitions(env, plant_params, count: int, seed: int, half_width=None, num_plants: int = 1):
     """``count`` one-step transitions of the plant ``plant_params`` from random states and inputs.
 
     The step is the plant's CasADi mirror with the env's own integrator and substeps
@@ -39,9 +39,12 @@ def sample_transitions(env, plant_params, count: int, seed: int, half_width=None
 
     Args:
         env: the environment. plant_params: unbatched ``EnvParams`` of the plant (usually ``env.default_params``).
-        count: number of samples. seed: seed of numpy's generator.
+        count: number of samples. seed: seed of numpy's generator (and of the plants' draws).
         half_width: ``None`` (states uniform in the env's initial-state box ``init_state`` low/high) or (nx,)
             half-widths of a box around the plant's goal the states are drawn from uniformly.
+        num_plants: plants whose physics ``env.reset`` draws from the env's physics randomisation (an equal share
+            of the samples each), so the model error covers the plants episodes meet; 1 (or an env without
+            physics randomisation): ``plant_params`` itself.
 
     Returns:
         ``(x (count, nx), u (count, nu), x_next (count, nx))`` numpy float64; ``u`` uniform in the plant's actuator
@@ -61,8 +64,16 @@ def sample_transitions(env, plant_params, count: int, seed: int, half_width=None
         np.asarray(b, dtype=np.float64).reshape(env.nu) for b in env.system.input_bounds(plant_params.physics)
     )
     u = rng.uniform(u_low, u_high, (count, env.nu))
-    fd = env.symbolic_model(plant_params).fd
-    x_next = np.asarray(fd.map(count)(x.T, u.T), dtype=np.float64).T
+    plants = [plant_params]
+    if num_plants > 1 and env.physics_randomization_specs:
+        import jax
+
+        keys = jax.random.split(jax.random.key(seed), num_plants)
+        plants = [plant_params.replace(physics=env.reset(key, plant_params)[1].physics) for key in keys]
+    x_next = np.empty_like(x)
+    for share, plant in zip(np.array_split(np.arange(count), len(plants)), plants, strict=True):
+        fd = env.symbolic_model(plant).fd
+        x_next[share] = np.asarray(fd.map(share.size)(x[share].T, u[share].T), dtype=np.float64).T
     return x, u, x_next
 
 
