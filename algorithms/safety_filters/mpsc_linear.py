@@ -115,7 +115,7 @@ class Options:
     sdp_solver: str = option("clarabel", "conic solver of the invariant-set program (cvxpy)", choices=tight.SDP_SOLVERS)
     error_quantile: float = option(1.0, "quantile of |w - mean| bounding the error per dimension (reachable)")
     constraint_margin: float = option(0.0, "extra margin on every row that involves the state (row units)")
-    regularization: float = option(0.1, "weight of 1/2 |v_1..v_H-1|^2: the plan's later inputs stay near the LQR's")
+    regularization: float = option(1e-3, "weight of 1/2 |v_1..v_H-1|^2: the plan's later inputs stay near the LQR's")
     solver: str = option("admm", "QP solver: shared-factorisation ADMM or qpax interior point", choices=SOLVERS)
     admm_iterations: int = option(500, "ADMM iterations per solve (fixed)")
     admm_rho: float = option(0.1, "ADMM step size rho")
