@@ -14,6 +14,7 @@ import jax
 import numpy as np
 
 from scg_algorithms.controller_setup import input_limits
+from scg_jax.validation import weight_matrix
 
 
 def state_box(env, prior_params) -> tuple[np.ndarray, np.ndarray]:
@@ -96,3 +97,11 @@ def backup_weights(env, prior_params, A, b, x_backup) -> list[tuple[np.ndarray, 
 
 
 __all__ = ["backup_weights", "failure_rows", "sample_states", "state_box", "validation_box", "validation_states"]
+
+
+def diagonal_weight(value, path: str, default, n: int) -> np.ndarray:
+    """(n,) a diagonal weight option: ``value`` checked by ``scg_jax.validation.weight_matrix``, or ``default``
+    where the option is not given (``None``)."""
+    if value is None:
+        return np.asarray(default, dtype=np.float64).reshape(n)
+    return np.diag(weight_matrix(value, path, n, diagonal_only=True))

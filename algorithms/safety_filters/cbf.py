@@ -61,6 +61,7 @@ from scg_algorithms.base import option, parse_options
 from scg_algorithms.controller_setup import equilibrium_input, input_limits, prior_model
 from scg_algorithms.safety_filters.backup import (
     backup_weights,
+    diagonal_weight,
     failure_rows,
     sample_states,
     state_box,
@@ -731,7 +732,6 @@ def backup_setup(env, prior_params, A, b, opts: Options, path: str = PATH):
     Raises:
         FieldError: ``backup_state`` outside the rows, bad weights, or a backup LQR with no stabilising solution.
     """
-    from scg_algorithms.base import weight_diagonal
     from scg_algorithms.lqr import discrete_lqr_gain
     from scg_jax.integrators import make_discrete_dynamics
 
@@ -752,8 +752,8 @@ def backup_setup(env, prior_params, A, b, opts: Options, path: str = PATH):
     lin = prior_model(env, prior_params, "rk4").linearize(x_backup, u_backup)
     candidates = []
     for default_q, default_r in backup_weights(env, prior_params, A, b - opts.margin, x_backup):
-        q = np.asarray(weight_diagonal(f"{path}.backup_q", opts.backup_q, default_q, nx))
-        r = np.asarray(weight_diagonal(f"{path}.backup_r", opts.backup_r, default_r, nu))
+        q = diagonal_weight(opts.backup_q, f"{path}.backup_q", default_q, nx)
+        r = diagonal_weight(opts.backup_r, f"{path}.backup_r", default_r, nu)
         if min(r) <= 0:
             raise FieldError(f"{path}.backup_r", f"the backup LQR's input weight must be positive, got {list(r)}")
         try:

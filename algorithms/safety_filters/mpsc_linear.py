@@ -63,13 +63,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from scg_algorithms import controller_setup as setup
-from scg_algorithms.base import option, parse_options, positive, weight_diagonal
+from scg_algorithms.base import option, parse_options, positive
 from scg_algorithms.lqr import discrete_lqr_gain
 from scg_algorithms.mpc import qp as qp_lib
 from scg_algorithms.mpc.linear import _constraint_rows
 from scg_algorithms.safety_filters import mpsc_admm
 from scg_algorithms.safety_filters import mpsc_tightening as tight
-from scg_algorithms.safety_filters.backup import backup_weights, failure_rows, validation_states
+from scg_algorithms.safety_filters.backup import backup_weights, diagonal_weight, failure_rows, validation_states
 from scg_algorithms.safety_filters.base import (
     BACKUP_CONTROLLER,
     BACKUP_PLAN,
@@ -286,8 +286,8 @@ def ancillary_weights(env, prior_params, rows, x_bar, opts: Options, path: str) 
     )
     candidates = []
     for default_q, default_r in defaults:
-        q = np.asarray(weight_diagonal(f"{path}.q_lqr", opts.q_lqr, default_q, nx))
-        r = np.asarray(weight_diagonal(f"{path}.r_lqr", opts.r_lqr, default_r, nu))
+        q = diagonal_weight(opts.q_lqr, f"{path}.q_lqr", default_q, nx)
+        r = diagonal_weight(opts.r_lqr, f"{path}.r_lqr", default_r, nu)
         if min(r) <= 0:
             raise ValueError(f"{path}.r_lqr: the LQR input weight must be positive, got {list(r)}")
         candidates.append((q, r))
