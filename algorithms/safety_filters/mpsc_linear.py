@@ -113,7 +113,11 @@ class Options:
     )
     tau: float = option(0.95, "S-procedure contraction of the invariant-ellipsoid program, in (0, 1)")
     sdp_solver: str = option("clarabel", "conic solver of the invariant-set program (cvxpy)", choices=tight.SDP_SOLVERS)
-    error_quantile: float = option(1.0, "quantile of |w - mean| bounding the error per dimension (reachable)")
+    error_quantile: float | None = option(
+        None,
+        "quantile of |w - mean| bounding the error per dimension (reachable); default: the largest of 1, 0.9, 0.75, "
+        "0.5 whose tube leaves the goal inside the tightened rows",
+    )
     constraint_margin: float = option(0.0, "extra margin on every row that involves the state (row units)")
     regularization: float = option(1e-3, "weight of 1/2 |v_1..v_H-1|^2: the plan's later inputs stay near the LQR's")
     solver: str = option("admm", "QP solver: shared-factorisation ADMM or qpax interior point", choices=SOLVERS)
@@ -136,7 +140,7 @@ class Options:
             raise ValueError(f"{path}.tau: must be in (0, 1), got {self.tau!r}")
         if not 0.0 < self.admm_alpha < 2.0:
             raise ValueError(f"{path}.admm_alpha: must be in (0, 2), got {self.admm_alpha!r}")
-        if not 0.0 < self.error_quantile <= 1.0:
+        if self.error_quantile is not None and not 0.0 < self.error_quantile <= 1.0:
             raise ValueError(f"{path}.error_quantile: must be in (0, 1], got {self.error_quantile!r}")
         for name in ("constraint_margin", "regularization", "terminal_horizon"):
             if getattr(self, name) < 0:
@@ -156,6 +160,7 @@ class Problem:
         rows, merged). margins: (stages, m) tightening of each row at each stage. u_low, u_high: (nu,) clip box, N.
         errors: (n, nx) model-error samples (empty without tightening). P_rpi: (nx, nx) the invariant ellipsoid
         (``tightening="rpi"``) or ``None``. qp: the condensed ``qp_lib.CondensedQP`` (its objective unused).
+        error_quantile: the quantile of the error bound the tube uses (``error_quantile``, or the one chosen).
     """
 
     options: Options
@@ -175,6 +180,7 @@ class Problem:
     errors: np.ndarray
     P_rpi: np.ndarray | None
     qp: Any
+    error_quantile: float = 1.0
 
 
 def build_problem(env, prior_params, options=None, plant_params=None, path: str = PATH) -> Problem:
@@ -202,47 +208,59 @@ def build_problem(env, prior_params, options=None, plant_params=None, path: str 
         )
         errors = x_next - (x @ Ad[0].T + u @ Bd[0].T + c[0])
 
-    candidates = []
-    for q, r in ancillary_weights(env, prior_params, rows, x_bar, opts, path):
-        try:
-            K, _ = discrete_lqr_gain(Ad[0], Bd[0], np.diag(q), np.diag(r))
-        except ValueError as error:
-            raise ValueError(f"{path}.q_lqr: the ancillary LQR has no stabilising solution ({error})") from None
-        A_cl = Ad[0] - Bd[0] @ K
-        P_rpi = None
-        margins = np.zeros((stages, rows.num_rows))
-        if opts.tightening == "rpi":
-            P_rpi = tight.rpi_ellipsoid(A_cl, errors, opts.tau, opts.sdp_solver, f"{path}.tau")
-            margins = np.tile(tight.ellipsoid_tightening(rows.Ax, rows.Au, K, P_rpi), (stages, 1))
-        elif opts.tightening == "reachable":
-            _, w_bar = tight.error_box(errors, opts.error_quantile)
-            margins = tight.reachable_tightening(rows.Ax, rows.Au, K, A_cl, w_bar, stages)
-        # The tail is the terminal set: it keeps the last free stage's tightening (the tube's margins keep growing
-        # along a slow closed loop, and a tail 100 steps long would tighten the rows away).
-        margins[H:] = margins[H - 1]
-        margins = margins + opts.constraint_margin * rows.soft[None, :]
-        try:
-            _check_margins(rows, margins, u_low, u_high, path)
-        except ValueError as error:
-            refusal = error  # this gain's tube leaves no input; another candidate's may
-            continue
-        candidates.append((K, P_rpi, margins))
+    weights = ancillary_weights(env, prior_params, rows, x_bar, opts, path)
+    quantiles = tight.error_quantiles(opts.error_quantile) if opts.tightening == "reachable" else (1.0,)
+    candidates, refusal = [], None
+    for quantile in quantiles:  # the largest error bound whose tube leaves room; each gain's tube differs
+        for q, r in weights:
+            try:
+                K, _ = discrete_lqr_gain(Ad[0], Bd[0], np.diag(q), np.diag(r))
+            except ValueError as error:
+                raise ValueError(f"{path}.q_lqr: the ancillary LQR has no stabilising solution ({error})") from None
+            A_cl = Ad[0] - Bd[0] @ K
+            P_rpi = None
+            margins = np.zeros((stages, rows.num_rows))
+            if opts.tightening == "rpi":
+                P_rpi = tight.rpi_ellipsoid(A_cl, errors, opts.tau, opts.sdp_solver, f"{path}.tau")
+                margins = np.tile(tight.ellipsoid_tightening(rows.Ax, rows.Au, K, P_rpi), (stages, 1))
+            elif opts.tightening == "reachable":
+                _, w_bar = tight.error_box(errors, quantile)
+                margins = tight.reachable_tightening(rows.Ax, rows.Au, K, A_cl, w_bar, stages)
+            # The tail is the terminal set: it keeps the last free stage's tightening (the tube's margins keep
+            # growing along a slow closed loop, and a tail 100 steps long would tighten the rows away).
+            margins[H:] = margins[H - 1]
+            margins = margins + opts.constraint_margin * rows.soft[None, :]
+            try:
+                _check_margins(rows, margins, u_low, u_high, path)
+            except ValueError as error:
+                refusal = error  # this gain's tube leaves no input; another candidate's may
+                continue
+            reason = tight.tube_room(rows, margins, x_bar, u_bar)
+            if reason is not None:
+                refusal = ValueError(
+                    f"{path}.tightening: {reason}; lower the model error (sample_half_width, plant_draws, a better "
+                    "prior), give a smaller error_quantile or make the ancillary LQR gentler (larger r_lqr)"
+                )
+                continue
+            candidates.append((K, P_rpi, margins, quantile))
+        if candidates:
+            break
     if not candidates:
         raise refusal
     if len(candidates) > 1:  # keep the ancillary LQR whose terminal set holds the most sampled states
         states = validation_states(env, prior_params, 2000, jax.random.key(1))
         held = [
             terminal_set_fraction(states, Ad[0], Bd[0], c[0], K, x_bar, u_bar, rows, margins[H:])
-            for K, _, margins in candidates
+            for K, _, margins, _ in candidates
         ]
-        K, P_rpi, margins = candidates[int(np.argmax(held))]
+        K, P_rpi, margins, quantile = candidates[int(np.argmax(held))]
     else:
-        K, P_rpi, margins = candidates[0]
+        K, P_rpi, margins, quantile = candidates[0]
     affine = qp_lib.AffineModel(Ad=Ad, Bd=Bd, c=c, x_bar=x_bar[None], u_bar=u_bar, K=K[None], P=np.zeros((1, nx, nx)))
     qp = decision_prefix(qp_lib.build_qp(affine, stages, np.zeros((nx, nx)), np.zeros((nu, nu)), rows), H, nu)
     return Problem(
         opts, env.system.name, nx, nu, H, stages, affine, K, x_bar, u_bar, rows, margins, u_low, u_high, errors,
-        P_rpi, qp,
+        P_rpi, qp, quantile,
     )  # fmt: skip
 
 
@@ -514,7 +532,10 @@ def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> Filt
         )
         return u, LinearMPSCState(v_plan, kinf.astype(jnp.int32), z_next, y_next), info
 
-    info = {"problem": problem, "options": opts, "horizon": H, "solver": opts.solver}
+    info = {
+        "problem": problem, "options": opts, "horizon": H, "solver": opts.solver,
+        "error_quantile": problem.error_quantile, "tightening_max": problem.margins.max(axis=0).tolist(),
+    }  # fmt: skip
     return Filter(name="linear_mpsc", system=system, params=params, reset_fn=reset, certify_fn=certify, info=info)
 
 

@@ -71,7 +71,11 @@ class Options:
     sample_half_width: tuple | None = option(
         None, "(nx,) half-widths of the box around the goal the sampled states fill; default: the env's init box"
     )
-    error_quantile: float = option(1.0, "quantile of |w - mean| bounding the error per dimension")
+    error_quantile: float | None = option(
+        None,
+        "quantile of |w - mean| bounding the error per dimension; default: the largest of 1, 0.9, 0.75, 0.5 whose "
+        "tube leaves the goal inside the tightened rows",
+    )
     model_bias: bool = option(True, "add the mean sampled model error to the prediction model")
     constraint_margin: float = option(0.0, "extra margin on every row that involves the state (row units)")
     regularization: float = option(1e-3, "weight of the deviation of U_j from the tube feedback (j >= 1)")
@@ -84,7 +88,7 @@ class Options:
             if getattr(self, name) < 1:
                 raise ValueError(f"{path}.{name}: must be a positive integer, got {getattr(self, name)!r}")
         positive(f"{path}.tol", self.tol)
-        if not 0.0 < self.error_quantile <= 1.0:
+        if self.error_quantile is not None and not 0.0 < self.error_quantile <= 1.0:
             raise ValueError(f"{path}.error_quantile: must be in (0, 1], got {self.error_quantile!r}")
         for name in ("constraint_margin", "regularization", "terminal_horizon"):
             if getattr(self, name) < 0:
@@ -130,7 +134,7 @@ class NonlinearMPSC:
 
         self.bias = np.zeros(nx)
         self.errors = np.zeros((0, nx))
-        w_bar = None
+        mean = np.zeros(nx)
         if opts.tightening != "none" or opts.model_bias:
             plant = env.default_params if plant_params is None else plant_params
             x, u, x_next = tight.sample_transitions(
@@ -138,22 +142,37 @@ class NonlinearMPSC:
             )
             predicted = np.asarray(model.fd.map(x.shape[0])(x.T, u.T), dtype=np.float64).T
             self.errors = x_next - predicted
-            mean, w_bar = tight.error_box(self.errors, opts.error_quantile)
+            mean = self.errors.mean(axis=0)
             if opts.model_bias:
                 self.bias = mean
-            else:  # without the bias in the model, the bound must cover the mean error too
-                w_bar = w_bar + np.abs(mean)
-        candidates = []
-        for q, r in ancillary_weights(env, prior_params, rows, self.x_goal, opts, PATH):
-            try:
-                K, _ = discrete_lqr_gain(Ad, Bd, np.diag(q), np.diag(r))
-            except ValueError as error:
-                raise ValueError(f"{PATH}.q_lqr: the ancillary LQR has no stabilising solution ({error})") from None
-            margins = np.zeros((stages, rows.num_rows))
-            if opts.tightening == "reachable":
-                margins = tight.reachable_tightening(rows.Ax, rows.Au, K, Ad - Bd @ K, w_bar, stages)
-                margins[H:] = margins[H - 1]  # the terminal tail keeps the last free stage's tightening
-            candidates.append((K, margins + opts.constraint_margin * rows.soft[None, :]))
+        weights = ancillary_weights(env, prior_params, rows, self.x_goal, opts, PATH)
+        quantiles = tight.error_quantiles(opts.error_quantile) if opts.tightening == "reachable" else (1.0,)
+        candidates, reason = [], None
+        for quantile in quantiles:  # the largest error bound whose tube leaves room (as the linear MPSC's)
+            for q, r in weights:
+                try:
+                    K, _ = discrete_lqr_gain(Ad, Bd, np.diag(q), np.diag(r))
+                except ValueError as error:
+                    raise ValueError(f"{PATH}.q_lqr: the ancillary LQR has no stabilising solution ({error})") from None
+                margins = np.zeros((stages, rows.num_rows))
+                if opts.tightening == "reachable":
+                    _, w_bar = tight.error_box(self.errors, quantile)
+                    if not opts.model_bias:  # without the bias in the model, the bound must cover the mean too
+                        w_bar = w_bar + np.abs(mean)
+                    margins = tight.reachable_tightening(rows.Ax, rows.Au, K, Ad - Bd @ K, w_bar, stages)
+                    margins[H:] = margins[H - 1]  # the terminal tail keeps the last free stage's tightening
+                margins = margins + opts.constraint_margin * rows.soft[None, :]
+                reason = tight.tube_room(rows, margins, self.x_goal, self.u_eq)
+                if reason is None:
+                    candidates.append((K, margins))
+            if candidates:
+                self.error_quantile = quantile
+                break
+        if not candidates:
+            raise ValueError(
+                f"{PATH}.tightening: {reason}; lower the model error (sample_half_width, plant_draws, a better "
+                "prior) or give a smaller error_quantile"
+            )
         if len(candidates) > 1:  # keep the ancillary LQR whose terminal set holds the most sampled states
             states = validation_states(env, prior_params, 2000, jax.random.key(1))
             held = [
@@ -182,7 +201,8 @@ class NonlinearMPSC:
                 cost += 0.5 * opts.regularization * cs.sumsqr(U[:, j] - u_eq + K @ (X[:, j] - goal))
         # The terminal set: from X_H the ancillary LQR on the linearised model keeps the rows over the tail.
         tail_rows = self._tail_rows(X[:, H], cs)
-        opti.subject_to(tail_rows <= 0)
+        if self.stages > H:
+            opti.subject_to(tail_rows <= 0)
         opti.minimize(cost)
         ipopt = {"print_level": 0, "sb": "yes", "max_iter": opts.max_iter, "tol": opts.tol}
         opti.solver("ipopt", {"print_time": False, "error_on_fail": False, "expand": True}, ipopt)

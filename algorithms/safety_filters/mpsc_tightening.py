@@ -149,6 +149,32 @@ def error_box(w, quantile: float = 1.0):
     return mean, np.quantile(np.abs(w - mean), quantile, axis=0)
 
 
+# The quantiles ``error_quantile: null`` tries, largest first: the first whose tube leaves room (``tube_room``).
+# The whole sample bound (1.0) where the error is small next to the constraint (a quadrotor's ceiling); a
+# smaller share where the largest errors of the sampled box (full thrust on a plant 10 % lighter) would tighten
+# a narrow constraint (the cart within +-0.1 m) away.
+AUTO_QUANTILES = (1.0, 0.9, 0.75, 0.5)
+
+
+def error_quantiles(value) -> tuple[float, ...]:
+    """The quantiles to try for the option ``error_quantile``: ``(value,)``, or ``AUTO_QUANTILES`` for ``None``."""
+    return AUTO_QUANTILES if value is None else (float(value),)
+
+
+def tube_room(rows, margins, x_goal, u_eq) -> str | None:
+    """``None`` when the goal and its equilibrium input hold every tightened row at every stage
+    (``Ax x_goal + Au u_eq <= b - margin_j``), so a plan that rests at the goal exists; else the reason."""
+    excess = rows.Ax @ x_goal + rows.Au @ u_eq - (rows.b[None, :] - margins)
+    if excess.max() <= 0:
+        return None
+    j, r = np.unravel_index(int(np.argmax(excess)), excess.shape)
+    return (
+        f"the tightening of row {r} ({rows.Ax[r].round(4).tolist()} x + {rows.Au[r].round(4).tolist()} u <= "
+        f"{rows.b[r]:.4g}) at stage {j} is {margins[j, r]:.3g}, which leaves the goal and its equilibrium input "
+        "outside"
+    )
+
+
 def reachable_tightening(Ax, Au, K, A_cl, w_bar, horizon: int) -> np.ndarray:
     """(horizon, m) per-stage margins of the rows for the linearised tube with errors in the box ``|w| <= w_bar``
     (see the module docstring); stage ``j`` is the row of the state ``x_{j+1}`` and the input ``u_j``."""
@@ -168,7 +194,10 @@ def reachable_tightening(Ax, Au, K, A_cl, w_bar, horizon: int) -> np.ndarray:
 
 
 __all__ = [
+    "AUTO_QUANTILES",
     "SDP_SOLVERS",
+    "error_quantiles",
+    "tube_room",
     "ellipsoid_tightening",
     "error_box",
     "reachable_tightening",
