@@ -53,8 +53,9 @@ CASES = (
     Case("cart-pole |x| <= 0.1 m", "cartpole_stabilization.yaml", (_bound(0, -0.1, 0.1),)),
     # Tracking the 1 m sinusoid tilts the pole beyond 0.1 rad.
     Case("cart-pole |theta| <= 0.1 rad", "cartpole_tracking.yaml", (_bound(2, -0.1, 0.1),)),
-    # The 1 +- 0.5 m sinusoid under a 1.3 m ceiling.
-    Case("quadrotor 1D z <= 1.3 m", "quadrotor_1d_tracking.yaml", (_bound(0, -10.0, 1.3),)),
+    # The 1 +- 0.5 m sinusoid under a 1.48 m ceiling: LQR tracks it within 2 cm, so a lower ceiling would make any
+    # safe filter's RMSE a multiple of LQR's (the reference itself crosses it).
+    Case("quadrotor 1D z <= 1.48 m", "quadrotor_1d_tracking.yaml", (_bound(0, -10.0, 1.48),)),
     # The 2D case: the circle around z = 1 m of radius 0.5 m under a 1.3 m ceiling, starting below 1.2 m.
     Case(
         "quadrotor 2D z <= 1.3 m",
