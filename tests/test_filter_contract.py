@@ -1,0 +1,73 @@
+"""The safety filters' contract over systems x constraints x filters (issue 24): each filter, built with its
+defaults from the configured constraint, either cuts LQR's violating steps to at most 10 % of LQR's with an RMSE
+at most 1.5x LQR's on the same episodes, or refuses when it is built with a message that says why
+(``scg_algorithms.safety_filters.contract``; the measured table is docs/benchmarks/filter_contract.md).
+
+The issue's two cases run in every test run; the other cells are ``slow`` (CI runs them too). A cell measured to
+miss the contract is a strict ``xfail`` naming the measurement, so it fails loudly once it holds."""
+
+from __future__ import annotations
+
+import functools
+
+import pytest
+
+from scg_algorithms.safety_filters import contract as C
+
+EPISODES = 16  # as the benchmark table and `scg-jax eval --episodes 16` (JAX filters: compile time dominates)
+HOST_EPISODES = 2  # the nonlinear MPSC runs IPOPT per copy and step on the host
+
+CART_X, CART_THETA, QUAD_1D, QUAD_2D_Z, QUAD_2D_X, QUAD_3D_Z = range(len(C.CASES))
+
+# Measured misses (16 episodes, seed 0): the cart-pole starts one episode (x0 = [-0.044, -0.047, -0.048, -0.034])
+# where no plan keeps |x| <= 0.1 m with the terminal set of the ancillary LQR (nor on the nonlinear model), so the
+# fallback's 18 violating steps are 1.125 per episode, 11.5 % of LQR's 9.8.
+MISSES = {(CART_X, "linear_mpsc"): "1.125 violating steps per episode, 11.5 % of LQR's (docs/safety-filters.md)"}
+
+
+def _cell(case: int, name: str, slow: bool = True):
+    marks = [pytest.mark.slow] if slow else []
+    if (case, name) in MISSES:
+        marks.append(pytest.mark.xfail(strict=True, reason=MISSES[(case, name)]))
+    return pytest.param(case, name, marks=marks, id=f"{C.CASES[case].label}-{name}")
+
+
+CELLS = [
+    _cell(CART_X, "cbf", slow=False),
+    _cell(QUAD_2D_Z, "cbf", slow=False),
+    _cell(QUAD_2D_Z, "linear_mpsc", slow=False),
+    _cell(CART_X, "linear_mpsc"),
+    *[_cell(case, name) for case in (CART_THETA, QUAD_1D, QUAD_2D_X, QUAD_3D_Z) for name in ("cbf", "linear_mpsc")],
+    _cell(QUAD_1D, "nonlinear_mpsc"),
+]
+
+
+@functools.cache
+def _baseline(case: int, episodes: int):
+    """``(env, params, controller, evaluation)`` of LQR on the case, shared by its filters."""
+    env, params = C.CASES[case].make()
+    controller, evaluation = C.lqr_baseline(env, params, episodes)
+    return env, params, controller, evaluation
+
+
+@pytest.mark.parametrize(("case", "name"), CELLS)
+def test_filter_keeps_the_constraint_or_refuses(case, name):
+    episodes = HOST_EPISODES if name == "nonlinear_mpsc" else EPISODES
+    env, params, controller, baseline = _baseline(case, episodes)
+    assert baseline.summary["constraint_violation_steps"] >= 2.0  # LQR alone crosses the constraint
+    outcome = C.run_filter(C.CASES[case], name, env, params, controller, baseline, episodes)
+    if outcome.refusal is not None:
+        # A refusal names the filter's option path and says why (after the field, a reason of some words).
+        assert f"safety_filters.{name}" in outcome.refusal and len(outcome.refusal.split(": ", 1)[-1]) > 20
+        return
+    assert outcome.violations <= C.MAX_VIOLATION_SHARE * outcome.lqr_violations, outcome
+    assert outcome.rmse <= C.MAX_RMSE_RATIO * outcome.lqr_rmse, outcome
+
+
+def test_refusal_says_why():
+    """A barrier the constraint has none of is refused when built, naming the option and the reason."""
+    from scg_algorithms.safety_filters import make_filter
+
+    env, params = C.CASES[CART_X].make()
+    with pytest.raises(ValueError, match=r"safety_filters\.cbf\.barrier: no valid barrier .* braking: row 0 bounds x"):
+        make_filter("cbf", env, params, {"barrier": "braking"})
