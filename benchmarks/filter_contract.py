@@ -35,6 +35,7 @@ def main(argv=None) -> int:
     parser.add_argument("--filters", nargs="+", default=list(C.FILTER_NAMES), choices=C.FILTER_NAMES)
     parser.add_argument("--cases", nargs="+", type=int, help="indices into CASES (default: all)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--merge", nargs="*", type=Path, default=[], help="JSONs of other runs to merge in first")
     parser.add_argument("--json", type=Path, default=DEFAULT_JSON)
     parser.add_argument("--md", type=Path, default=DEFAULT_MD)
     args = parser.parse_args(argv)
@@ -42,8 +43,9 @@ def main(argv=None) -> int:
     record = run_record("filter_contract")
     previous = json.loads(args.json.read_text()) if args.json.exists() else {}
     labels = {case.label for case in C.CASES}  # rows of cases no longer in CASES are dropped
-    rows = {(r["case"], r["filter"]): r for r in previous.get("outcomes", []) if r["case"] in labels}
-    for index in args.cases if args.cases is not None else range(len(C.CASES)):
+    outcomes = [r for path in args.merge for r in json.loads(path.read_text())["outcomes"]]
+    rows = {(r["case"], r["filter"]): r for r in [*previous.get("outcomes", []), *outcomes] if r["case"] in labels}
+    for index in args.cases if args.cases is not None else ([] if args.merge else range(len(C.CASES))):
         case = C.CASES[index]
         env, params = case.make()
         for name in args.filters:
