@@ -31,6 +31,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import median_seconds, print_machine, run_record, write_markdown_table  # noqa: E402
 
+from scg_algorithms.safety_filters import contract  # noqa: E402
+
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_JSON = ROOT / "benchmarks" / "results" / "safety_filters.json"
 DEFAULT_MD = ROOT / "docs" / "benchmarks" / "safety_filters.md"
@@ -46,18 +48,6 @@ def ceiling_env():
         init_state={"type": "uniform", "low": [0.1, -0.01], "high": [1.4, 0.01]},
         done_on_out_of_bounds=False,
         constraints=[{"type": "bounded", "on": "state", "active_dims": [0], "low": [-10.0], "high": [CEILING]}],
-    )
-
-
-def floor_and_ceiling_env():
-    """The 1D quadrotor between a floor at 0.1 m and the ceiling: two braking barriers."""
-    import scg_jax
-
-    return scg_jax.make(
-        "quadrotor_1d",
-        init_state={"type": "uniform", "low": [0.2, -0.01], "high": [1.4, 0.01]},
-        done_on_out_of_bounds=False,
-        constraints=[{"type": "bounded", "on": "state", "active_dims": [0], "low": [0.1], "high": [CEILING]}],
     )
 
 
@@ -97,7 +87,7 @@ def _cbf_case(label, env_fn, options):
 CASES = [
     _cbf_case("CBF closed form (cart-pole ellipsoid)", cartpole_env, ELLIPSOID),
     _cbf_case("CBF qpax (cart-pole ellipsoid)", cartpole_env, {**ELLIPSOID, "solver": "qpax"}),
-    _cbf_case("CBF qpax (1D quadrotor floor and ceiling, 2 barriers)", floor_and_ceiling_env, {"barrier": "braking"}),
+    _cbf_case("CBF qpax (1D quadrotor floor and ceiling)", contract.floor_and_ceiling_env, {"barrier": "braking"}),
     _cbf_case("CBF qpax (cart-pole backup barrier)", cartpole_env, {"barrier": "backup"}),
     _cbf_case("CBF CasADi qpOASES (cart-pole ellipsoid)", cartpole_env, {**ELLIPSOID, "solver": "casadi"}),
 ]
@@ -148,7 +138,7 @@ def parity(num_points: int) -> dict:
     out = {}
     for barrier, env, options in (
         ("ellipsoid", cartpole_env(), ELLIPSOID),
-        ("braking, floor and ceiling", floor_and_ceiling_env(), {"barrier": "braking"}),
+        ("braking, floor and ceiling", contract.floor_and_ceiling_env(), {"barrier": "braking"}),
     ):
         params = env.default_params
         jax_filter = make_filter("cbf", env, params, options)

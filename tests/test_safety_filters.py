@@ -15,6 +15,7 @@ from scg_algorithms.evaluation import evaluate, make_evaluator
 from scg_algorithms.safety_filters import FILTERS, filtered, make_filter
 from scg_algorithms.safety_filters.base import INTERVENTION_THRESHOLD
 from scg_algorithms.safety_filters.cbf import cbf_filter, is_valid_cbf, solve_single
+from scg_algorithms.safety_filters.contract import floor_and_ceiling_env
 from scg_algorithms.safety_filters.uncertified import random_input
 from scg_jax.env import prior_params
 
@@ -69,14 +70,6 @@ def test_closed_form_worked_numbers(u_l, a, c, box, inv_two_k, u_expected, s_exp
 
 
 # --------------------------------------------------------------------------------------------- parity
-def _floor_and_ceiling_env():
-    """The 1D quadrotor between a floor at 0.1 m and the ceiling: two braking barriers (the qpax filter)."""
-    return scg_jax.make(
-        "quadrotor_1d",
-        init_state={"type": "uniform", "low": [0.2, -0.01], "high": [1.4, 0.01]},
-        done_on_out_of_bounds=False,
-        constraints=[{"type": "bounded", "on": "state", "active_dims": [0], "low": [0.1], "high": [CEILING]}],
-    )
 
 
 # The ellipsoid is the original's candidate, not a CBF: built only when its infeasible states are accepted.
@@ -90,7 +83,7 @@ def test_jax_filter_equals_casadi_qpoases_and_leaves_safe_inputs_bit_exact(case)
             env, options = _cartpole_env(), ELLIPSOID
             low, high = [-2.0, -2.0, -0.2, -2.0], [2.0, 2.0, 0.2, 2.0]
         else:  # floor and ceiling: two braking barriers, qpax
-            env, options = _floor_and_ceiling_env(), {"barrier": "braking"}
+            env, options = floor_and_ceiling_env(), {"barrier": "braking"}
             low, high = [0.1, -3.0], [1.5, 3.0]
         params = env.default_params
         jax_filter = make_filter("cbf", env, params, options)
@@ -256,7 +249,7 @@ def test_bad_input_errors():
         make_filter("cbf", cart, cart.default_params, {"barrier": "braking"})
     with pytest.raises(ValueError, match=r"safety_filters\.cbf\.slop: unknown key"):
         make_filter("cbf", cart, cart.default_params, {"slop": 1.0})
-    floor = _floor_and_ceiling_env()
+    floor = floor_and_ceiling_env()
     with pytest.raises(ValueError, match=r"safety_filters\.cbf\.solver: closed_form solves one barrier"):
         make_filter("cbf", floor, floor.default_params, {"barrier": "braking", "solver": "closed_form"})
     with pytest.raises(ValueError, match=r"safety_filters\.cbf\.solver: the casadi filter has no backup controller"):

@@ -83,6 +83,19 @@ CASES = (
 )
 
 
+def floor_and_ceiling_env(floor: float = 0.1, ceiling: float = 1.5):
+    """The 1D quadrotor between a floor and a ceiling (m), flying on out of bounds: two braking barriers, the
+    qpax CBF's parity and speed case (tests and ``benchmarks/safety_filters.py``)."""
+    import scg_jax
+
+    return scg_jax.make(
+        "quadrotor_1d",
+        init_state={"type": "uniform", "low": [floor + 0.1, -0.01], "high": [ceiling - 0.1, 0.01]},
+        done_on_out_of_bounds=False,
+        constraints=[{"type": "bounded", "on": "state", "active_dims": [0], "low": [floor], "high": [ceiling]}],
+    )
+
+
 @dataclasses.dataclass(frozen=True)
 class Outcome:
     """One filter on one case: ``refusal`` (the build's message) or the filtered ``violations`` (violating steps per
@@ -163,6 +176,7 @@ __all__ = [
     "MAX_VIOLATION_SHARE",
     "Case",
     "Outcome",
+    "floor_and_ceiling_env",
     "lqr_baseline",
     "outcome_row",
     "run_filter",
