@@ -35,7 +35,8 @@ def main(argv=None) -> int:
     parser.add_argument("--filters", nargs="+", default=list(C.FILTER_NAMES), choices=C.FILTER_NAMES)
     parser.add_argument("--cases", nargs="+", type=int, help="indices into CASES (default: all)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--merge", nargs="*", type=Path, default=[], help="JSONs of other runs to merge in first")
+    parser.add_argument("--merge", nargs="+", type=Path, default=[], help="JSONs of other runs to merge in first")
+    parser.add_argument("--render-only", action="store_true", help="run nothing: merge and write the page")
     parser.add_argument("--json", type=Path, default=DEFAULT_JSON)
     parser.add_argument("--md", type=Path, default=DEFAULT_MD)
     args = parser.parse_args(argv)
@@ -45,7 +46,8 @@ def main(argv=None) -> int:
     labels = {case.label for case in C.CASES}  # rows of cases no longer in CASES are dropped
     outcomes = [r for path in args.merge for r in json.loads(path.read_text())["outcomes"]]
     rows = {(r["case"], r["filter"]): r for r in [*previous.get("outcomes", []), *outcomes] if r["case"] in labels}
-    for index in args.cases if args.cases is not None else ([] if args.merge else range(len(C.CASES))):
+    cases = [] if args.render_only else (args.cases if args.cases is not None else range(len(C.CASES)))
+    for index in cases:
         case = C.CASES[index]
         env, params = case.make()
         for name in args.filters:
@@ -71,8 +73,9 @@ def table(outcomes) -> tuple[list[str], list[list], str]:
     ]  # fmt: skip
     rows = []
     for r in outcomes:
+        r = {**r, "case": r["case"].replace("|", "\\|")}  # a bound |x| inside a Markdown table cell
         if r["refusal"] is not None:
-            cells = ["refused: " + r["refusal"].replace("|", "/"), "", "", "", "", "", ""]
+            cells = ["refused: " + r["refusal"].replace("|", "\\|"), "", "", "", "", "", ""]
             rows.append([r["case"], r["filter"], r["episodes"], f"{r['lqr_violations']:.1f}", *cells])
             continue
         rows.append([
@@ -86,7 +89,8 @@ def table(outcomes) -> tuple[list[str], list[list], str]:
         "(contract: at most 10 %); ratio: filtered RMSE / LQR's (contract: at most 1.5x); infeasible steps: the "
         "filter's problem had no certified solution and its fallback was applied. LQR and the filter run the same "
         "episodes (same key). Each filter with its defaults, as `scg-jax eval --controller lqr --filter NAME` builds "
-        "it; the cases are `scg_algorithms.safety_filters.contract.CASES`."
+        "it; the cases are `scg_algorithms.safety_filters.contract.CASES`. Rows merge over several runs (seed 0); the "
+        "machine line is the last run's."
     )
     return columns, rows, notes
 
