@@ -96,7 +96,6 @@ def backup_weights(env, prior_params, A, b, x_backup) -> list[tuple[np.ndarray, 
     return [(q, scale * r) for q in q_options for scale in (1.0, 0.01)]
 
 
-__all__ = ["backup_weights", "failure_rows", "sample_states", "state_box", "validation_box", "validation_states"]
 
 
 def diagonal_weight(value, path: str, default, n: int) -> np.ndarray:
@@ -105,3 +104,14 @@ def diagonal_weight(value, path: str, default, n: int) -> np.ndarray:
     if value is None:
         return np.asarray(default, dtype=np.float64).reshape(n)
     return np.diag(weight_matrix(value, path, n, diagonal_only=True))
+
+
+__all__ = [
+    "backup_weights",
+    "diagonal_weight",
+    "failure_rows",
+    "sample_states",
+    "state_box",
+    "validation_box",
+    "validation_states",
+]
