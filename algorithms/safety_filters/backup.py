@@ -96,8 +96,6 @@ def backup_weights(env, prior_params, A, b, x_backup) -> list[tuple[np.ndarray, 
     return [(q, scale * r) for q in q_options for scale in (1.0, 0.01)]
 
 
-
-
 def diagonal_weight(value, path: str, default, n: int) -> np.ndarray:
     """(n,) a diagonal weight option: ``value`` checked by ``scg_jax.validation.weight_matrix``, or ``default``
     where the option is not given (``None``)."""
