@@ -181,9 +181,12 @@ def backup_rollout(step_fn: Callable, num_steps: int) -> Callable:
     ``u_high`` (nu,)."""
 
     def rollout(x, params):
+        # The physics in the state's dtype: float64 physics (x64 on) would promote a float32 state mid-scan.
+        physics = jax.tree.map(lambda v: jnp.asarray(v).astype(x.dtype), params["physics"])
+
         def step(state, _):
             u = backup_input(state, params)
-            nxt = step_fn(state, u, params["physics"])
+            nxt = step_fn(state, u, physics).astype(state.dtype)
             return nxt, nxt
 
         _, states = jax.lax.scan(step, x, None, length=num_steps)
