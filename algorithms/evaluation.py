@@ -67,14 +67,17 @@ class Evaluation(NamedTuple):
             ``compute_time_per_batch_step_s`` (JAX controllers; ``None`` for host ones), ``num_episodes``; for a
             safety-filtered controller (``scg_algorithms.safety_filters.filtered``) also ``intervention_fraction``
             (steps where the filter changed the input by more than 1e-4 N / steps), ``mean_correction`` (mean
-            ``|u - u_uncertified|`` over steps, N) and ``infeasible_fraction`` (steps whose filter problem failed).
+            change of the applied input, ``|u - clip(u_uncertified)|``, over steps, N), ``infeasible_fraction``
+            (steps whose filter problem failed) and what was applied on them, ``infeasible_<kind>_fraction``
+            (``scg_algorithms.safety_filters.base.intervention_metrics``).
         per_episode: ``scg_jax.metrics.episode_metrics`` of each episode, (num_episodes,) arrays.
         trajectory: ``x`` (T + 1, N, nx) states from reset to the last step, ``x_ref`` (T + 1, N, nx), ``obs``
             (T, N, obs), ``u_cmd`` and ``u`` (T, N, nu) commanded and applied inputs (N), ``reward``, ``cost``,
             ``terminated``, ``truncated``, ``mse``, ``out_of_bounds``, ``nonfinite`` (T, N) and
             ``constraint_values`` (T, N, rows); a filtered controller adds ``filter_correction`` (T, N, nu),
-            ``filter_feasible`` and ``filter_slack`` (T, N). Rows after a copy's episode ended are the plant
-            running on (JAX controllers) or repeat the last input (host controllers); the metrics ignore them.
+            ``filter_feasible``, ``filter_slack`` and ``filter_applied`` (T, N). Rows after a copy's episode ended
+            are the plant running on (JAX controllers) or repeat the last input (host controllers); the metrics
+            ignore them.
         timing: ``run_s`` (wall time of the closed loop, compile excluded for JAX controllers), ``compile_s``.
     """
 
@@ -380,7 +383,12 @@ def _score(name, trajectory, timing, per_step, per_batch_step, num_episodes) -> 
     summary["num_episodes"] = num_episodes
     if "filter_correction" in trajectory:  # a filtered controller: how often and how much the filter intervened
         summary.update(
-            intervention_metrics(trajectory["filter_correction"], trajectory["filter_feasible"], per_episode["length"])
+            intervention_metrics(
+                trajectory["filter_correction"],
+                trajectory["filter_feasible"],
+                per_episode["length"],
+                trajectory.get("filter_applied"),
+            )
         )
     return Evaluation(name, summary, per_episode, trajectory, timing)
 

@@ -131,7 +131,7 @@ def test_learned_cbf_rounds_take_their_data_as_arguments():
     )
     params = env.default_params
     prior = scg_jax.prior_params(env, params, 1.5)
-    opts = parse_options(learned_cbf.Options, {"barrier": "ceiling", "hidden_sizes": [8]}, learned_cbf.PATH)
+    opts = parse_options(learned_cbf.Options, {"barrier": "braking", "hidden_sizes": [8]}, learned_cbf.PATH)
     flt = learned_cbf.make_learned_cbf(env, prior, opts)
     net_params = flt.params["correction"]
     collect = learned_cbf._collector(env, flt, prior_step_fn(env, prior, "env"), random_input(env, prior))

@@ -15,6 +15,7 @@ from scg_algorithms.evaluation import evaluate, make_evaluator
 from scg_algorithms.safety_filters import FILTERS, filtered, make_filter
 from scg_algorithms.safety_filters.base import INTERVENTION_THRESHOLD
 from scg_algorithms.safety_filters.cbf import cbf_filter, is_valid_cbf, solve_single
+from scg_algorithms.safety_filters.contract import floor_and_ceiling_env
 from scg_algorithms.safety_filters.uncertified import random_input
 from scg_jax.env import prior_params
 
@@ -69,18 +70,31 @@ def test_closed_form_worked_numbers(u_l, a, c, box, inv_two_k, u_expected, s_exp
 
 
 # --------------------------------------------------------------------------------------------- parity
-@pytest.mark.parametrize("barrier", ["ellipsoid", "cartpole_position"])
-def test_jax_filter_equals_casadi_qpoases_and_leaves_safe_inputs_bit_exact(barrier):
+
+
+# The ellipsoid is the original's candidate, not a CBF: built only when its infeasible states are accepted.
+ELLIPSOID = {"barrier": "ellipsoid", "max_infeasible_fraction": 1.0}
+
+
+@pytest.mark.parametrize("case", ["ellipsoid", "braking"])
+def test_jax_filter_equals_casadi_qpoases_and_leaves_safe_inputs_bit_exact(case):
     with jax.enable_x64(True):
-        env = _cartpole_env()
+        if case == "ellipsoid":  # one barrier: the closed form
+            env, options = _cartpole_env(), ELLIPSOID
+            low, high = [-2.0, -2.0, -0.2, -2.0], [2.0, 2.0, 0.2, 2.0]
+        else:  # floor and ceiling: two braking barriers, qpax
+            env, options = floor_and_ceiling_env(), {"barrier": "braking"}
+            low, high = [0.1, -3.0], [1.5, 3.0]
         params = env.default_params
-        jax_filter = make_filter("cbf", env, params, {"barrier": barrier})
-        casadi_filter = make_filter("cbf", env, params, {"barrier": barrier, "solver": "casadi"})
-        assert jax_filter.info["solver"] == ("closed_form" if barrier == "ellipsoid" else "qpax")
+        jax_filter = make_filter("cbf", env, params, options)
+        casadi_filter = make_filter("cbf", env, params, {**options, "solver": "casadi"})
+        assert jax_filter.info["solver"] == ("closed_form" if case == "ellipsoid" else "qpax")
+        u_low, u_high = (np.asarray(b) for b in (jax_filter.params["u_low"], jax_filter.params["u_high"]))
         rng = np.random.default_rng(0)
         n = 300
-        xs = rng.uniform([-2.0, -2.0, -0.2, -2.0], [2.0, 2.0, 0.2, 2.0], size=(n, 4))
-        us = rng.uniform(-12.0, 12.0, size=(n, 1))
+        xs = rng.uniform(low, high, size=(n, env.nx))
+        span = u_high - u_low
+        us = rng.uniform(u_low - 0.1 * span, u_high + 0.1 * span, size=(n, env.nu))
         certify = jax.jit(jax.vmap(lambda x, u: jax_filter.certify(x, u, jax_filter.params, ())))
         u, _, info = certify(jnp.asarray(xs), jnp.asarray(us))
         u = np.asarray(u)
@@ -88,27 +102,42 @@ def test_jax_filter_equals_casadi_qpoases_and_leaves_safe_inputs_bit_exact(barri
         np.testing.assert_allclose(u, reference, rtol=0, atol=1e-6)
         # Where the clipped input already satisfies the barrier condition, it comes back bit for bit.
         terms = jax.vmap(lambda x: jax_filter.terms_fn(x, jax_filter.params))(jnp.asarray(xs))
-        u_l = np.clip(us, -10.0, 10.0)
-        margin = np.asarray(terms.Lf + 0.1 * terms.h) + np.einsum("nmu,nu->nm", np.asarray(terms.Lg), u_l)
+        u_l = np.clip(us, u_low, u_high)
+        slope = float(jax_filter.params["slope"])
+        margin = np.asarray(terms.Lf + slope * terms.h) + np.einsum("nmu,nu->nm", np.asarray(terms.Lg), u_l)
         safe = np.all(margin >= 0, axis=1)
         assert 0.1 < safe.mean() < 0.95
         assert np.array_equal(u[safe], u_l[safe])
-        in_box = np.abs(us[:, 0]) <= 10.0
-        assert np.all(np.asarray(info.correction)[safe & in_box] == 0.0)
-        assert np.all(np.abs(np.asarray(info.correction)[~safe]) > 0)
+        # The correction is the change of what the actuators apply: none where the clipped input is kept.
+        correction = np.asarray(info.correction)
+        assert np.all(correction[safe] == 0.0)
+        np.testing.assert_allclose(correction, u - u_l, rtol=0, atol=1e-12)
+        # An unsafe input is changed, unless it is already at the actuator limit the QP pushes it towards (then
+        # the slack takes the rest and the applied input is unchanged).
+        moved = np.abs(correction).max(axis=1) > 0
+        at_limit = np.any((u_l == u_low) | (u_l == u_high), axis=1)
+        assert np.all(moved[~safe] | at_limit[~safe]) and moved[~safe].mean() > 0.5
 
 
 # --------------------------------------------------------------------------------------------- validity check
-def test_is_valid_cbf_flags_the_ellipsoid_candidate_and_passes_the_braking_barrier():
+def test_is_valid_cbf_refuses_the_ellipsoid_candidate_and_passes_the_braking_barrier():
     env = _cartpole_env()
-    report = is_valid_cbf(make_filter("cbf", env, env.default_params), env, 4000, jax.random.key(0))
+    accepted = make_filter("cbf", env, env.default_params, ELLIPSOID)
+    report = is_valid_cbf(accepted, env, 4000, jax.random.key(0))
     assert report.num_inside > 500
     assert 0.02 < report.infeasible_fraction < 0.3  # the original's ellipsoid is a candidate, not a CBF
     assert np.all(report.worst_margins < 0)
     assert np.all(np.abs(report.worst_states) <= report.high + 1e-9)
+    # Built with the default tolerance (1 %), the same check refuses it and says with which fraction.
+    validity = accepted.info["validity"]
+    assert validity["infeasible_fraction"] == pytest.approx(validity["infeasible"] / validity["inside"])
+    percent = f"{100 * validity['infeasible_fraction']:.1f} %"
+    with pytest.raises(ValueError, match=rf"safety_filters\.cbf\.barrier: .*ellipsoid: .*\({percent} > "):
+        make_filter("cbf", env, env.default_params, {"barrier": "ellipsoid"})
 
     quad = _ceiling_env()
-    ceiling = make_filter("cbf", quad, quad.default_params, {"barrier": "ceiling"})
+    ceiling = make_filter("cbf", quad, quad.default_params, {"barrier": "braking"})
+    assert ceiling.info["validity"]["infeasible"] == 0
     valid = is_valid_cbf(ceiling, quad, 4000, jax.random.key(0), low=[-1.0, -5.0], high=[1.5, 5.0])
     assert valid.num_inside > 1000 and valid.num_infeasible == 0
 
@@ -128,7 +157,7 @@ def test_ceiling_unfiltered_true_and_wrong_prior(ceiling_setup):
     assert unfiltered.summary["constraint_violation_steps"] / env.num_steps >= 0.8
     assert "intervention_fraction" not in unfiltered.summary
 
-    options = {"barrier": "ceiling", "slope": 0.5, "braking_deceleration": TRUE_BRAKING}
+    options = {"barrier": "braking", "slope": 0.5, "braking_deceleration": TRUE_BRAKING}
     true_filter = make_filter("cbf", env, params, options)
     wrong_filter = make_filter("cbf", env, prior_params(env, params, 1.5), options)
     # One compiled loop for both models: the filter's params are traced.
@@ -156,7 +185,7 @@ def test_learned_cbf_recovers_safety_on_a_wrong_prior(ceiling_setup):
 
     env, params, _ = ceiling_setup
     options = {
-        "barrier": "ceiling", "slope": 0.5, "braking_deceleration": TRUE_BRAKING, "num_episodes": 2,
+        "barrier": "braking", "slope": 0.5, "braking_deceleration": TRUE_BRAKING, "num_episodes": 2,
         "num_copies": 16, "eval_episodes": 64, "hidden_sizes": [32, 32], "train_iterations": 150,
     }  # fmt: skip
     result = train_learned_cbf(env, params, prior_params(env, params, 1.5), options)
@@ -181,7 +210,7 @@ def test_learned_cbf_recovers_safety_on_a_wrong_prior(ceiling_setup):
 
 def test_host_path_records_the_casadi_filter(ceiling_setup):
     env, params, uncertified = ceiling_setup
-    host = filtered(uncertified, make_filter("cbf", env, params, {"barrier": "ceiling", "solver": "casadi"}), env)
+    host = filtered(uncertified, make_filter("cbf", env, params, {"barrier": "braking", "solver": "casadi"}), env)
     assert not host.is_jax
     run = evaluate(env, params, host, jax.random.key(3), 1)
     correction = np.abs(run.trajectory["filter_correction"][..., 0])
@@ -216,12 +245,15 @@ def test_bad_input_errors():
         filtered(random_input(quad, params), cart_filter, quad)
     with pytest.raises(ValueError, match="built for the cartpole system"):
         evaluate(quad, params, filtered(random_input(quad, params), cart_filter), jax.random.key(0), 1)
-    with pytest.raises(ValueError, match=r"safety_filters\.cbf\.barrier: 'ceiling' is not available for cartpole"):
-        make_filter("cbf", cart, cart.default_params, {"barrier": "ceiling"})
+    with pytest.raises(ValueError, match=r"safety_filters\.cbf\.barrier: .*row 0 bounds x: a braking barrier needs"):
+        make_filter("cbf", cart, cart.default_params, {"barrier": "braking"})
     with pytest.raises(ValueError, match=r"safety_filters\.cbf\.slop: unknown key"):
         make_filter("cbf", cart, cart.default_params, {"slop": 1.0})
+    floor = floor_and_ceiling_env()
     with pytest.raises(ValueError, match=r"safety_filters\.cbf\.solver: closed_form solves one barrier"):
-        make_filter("cbf", cart, cart.default_params, {"barrier": "cartpole_position", "solver": "closed_form"})
+        make_filter("cbf", floor, floor.default_params, {"barrier": "braking", "solver": "closed_form"})
+    with pytest.raises(ValueError, match=r"safety_filters\.cbf\.solver: the casadi filter has no backup controller"):
+        make_filter("cbf", cart, cart.default_params, {"barrier": "backup", "solver": "casadi"})
     with pytest.raises(ValueError, match="unknown name 'mpc'; allowed values are cbf, learned_cbf"):
         make_filter("mpc", cart, cart.default_params)
     assert {"cbf", "learned_cbf"} <= set(FILTERS)

@@ -12,12 +12,11 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from scg_algorithms.safety_filters.base import (
+    Filter,
     FilteredController,
     FilteredState,
     FilterInfo,
     FilterStats,
-    HostFilter,
-    JaxFilter,
     SafetyFilter,
     check_system,
     filtered,
@@ -67,12 +66,11 @@ def load_filter(path, env, params, options: Mapping | None = None):
 
 __all__ = [
     "FILTERS",
+    "Filter",
     "FilterInfo",
     "FilterStats",
     "FilteredController",
     "FilteredState",
-    "HostFilter",
-    "JaxFilter",
     "SafetyFilter",
     "check_system",
     "filter_factory",

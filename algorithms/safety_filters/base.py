@@ -8,14 +8,15 @@ certified input::
     u, filter_state, info = safety_filter.certify(obs, u_uncertified, filter_params, filter_state)
 
 ``info`` is a ``FilterInfo``: ``feasible`` (the filter's problem was solved; ``False`` means a fallback input was
-used), ``slack`` (>= 0, the soft-constraint slack used, 0 when the hard constraints held) and ``correction``
-(``u - u_uncertified``, N). ``filter_params`` is a pytree of traced values (prior physics, barrier parameters,
-network weights) whose default is ``safety_filter.params``; passing others (a trained network) needs no
-recompilation.
+used), ``slack`` (>= 0, the soft-constraint slack used, 0 when the hard constraints held), ``correction`` (the
+change of the input the plant receives: ``u`` minus the uncertified input clipped to the filter's actuator box, N;
+``applied_correction``) and ``applied`` (which input was applied: one of ``APPLIED``). ``filter_params`` is a pytree
+of traced values (prior physics, barrier parameters, network weights) whose default is ``safety_filter.params``;
+passing others (a trained network) needs no recompilation.
 
-Two kinds, as controllers (``scg_algorithms.base``): ``is_jax = True`` filters are pure JAX functions of one copy
-(the harness ``vmap``-s and ``jit``-s them inside the closed loop); ``is_jax = False`` filters take and return numpy
-arrays of one copy on the host (CasADi / IPOPT / cvxpy).
+Two kinds, as controllers (``scg_algorithms.base``), told apart by ``is_jax``: ``True``, pure JAX functions of one
+copy (the harness ``vmap``-s and ``jit``-s them inside the closed loop); ``False``, functions that take and return
+numpy arrays of one copy on the host (CasADi / IPOPT / cvxpy). ``Filter`` holds either kind.
 
 ``filtered(controller, safety_filter)`` composes a controller with a filter into a controller (JAX iff both are)
 whose state is a ``FilteredState``: the controller's state, the filter's state, the last ``FilterInfo`` and running
@@ -29,7 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Mapping
-from typing import Any, ClassVar, NamedTuple, Protocol, runtime_checkable
+from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import jax
 import jax.numpy as jnp
@@ -43,6 +44,14 @@ from scg_jax.caching import CompileCache
 # of these systems measurably.
 INTERVENTION_THRESHOLD = 1e-4
 
+# What a filter applied at a step (``FilterInfo.applied``, an int code indexing this tuple):
+# certified: the solution of the filter's problem (the uncertified input itself where it was safe);
+# best_effort: the soft problem's solution with a slack above its tolerance (no input met the condition);
+# backup_plan: the next input of the last certified plan (MPSC), continued with the tube feedback;
+# backup_controller: the filter's backup controller (the backup barrier's LQR, MPSC's ancillary LQR).
+APPLIED = ("certified", "best_effort", "backup_plan", "backup_controller")
+CERTIFIED, BEST_EFFORT, BACKUP_PLAN, BACKUP_CONTROLLER = range(len(APPLIED))
+
 
 class FilterInfo(NamedTuple):
     """What a filter reports about one certification.
@@ -50,12 +59,24 @@ class FilterInfo(NamedTuple):
     Attributes:
         feasible: bool scalar: the filter's problem was solved (``False``: a fallback input was used).
         slack: float scalar >= 0: the soft-constraint slack used (0 when the hard constraints held).
-        correction: (nu,) ``u - u_uncertified``, N.
+        correction: (nu,) the change of the input the plant receives, N: ``u`` minus the uncertified input clipped
+            to the actuator box (``applied_correction``), so clipping an input the actuators clip anyway is no
+            correction.
+        applied: int scalar, which input was applied: an index into ``APPLIED`` (``CERTIFIED`` iff ``feasible``).
     """
 
     feasible: Any
     slack: Any
     correction: Any
+    applied: Any
+
+
+def applied_correction(u, u_uncertified, u_low, u_high, xnp=jnp):
+    """``u - clip(u_uncertified, u_low, u_high)`` (nu,), N: the change a filter made to what the actuators apply."""
+    u_uncertified = xnp.asarray(u_uncertified)
+    lo = xnp.asarray(u_low).astype(u_uncertified.dtype)
+    hi = xnp.asarray(u_high).astype(u_uncertified.dtype)
+    return u - xnp.clip(u_uncertified, lo, hi)
 
 
 @runtime_checkable
@@ -73,14 +94,16 @@ class SafetyFilter(Protocol):
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class JaxFilter:
-    """A filter made of two pure JAX functions of one copy (jit- and vmap-able).
+class Filter:
+    """A filter made of two functions of one copy: pure JAX (``is_jax``, jit- and vmap-able) or host numpy.
 
     Attributes:
         name: the filter's name (``"cbf"``, ``"learned_cbf"``, ...). system: the env system it was built for.
-        params: the default ``filter_params`` pytree (traced). reset_fn: ``reset_fn(key) -> filter_state``.
-        certify_fn: ``certify_fn(obs, u_uncertified, filter_params, filter_state) -> (u, filter_state, FilterInfo)``.
-        info: static facts for reports (barrier, solver, slope); not traced.
+        params: the default ``filter_params`` pytree (traced when ``is_jax``). reset_fn: ``reset_fn(key) ->
+        filter_state``. certify_fn: ``certify_fn(obs, u_uncertified, filter_params, filter_state) -> (u,
+        filter_state, FilterInfo)``; with ``is_jax = False`` it takes and returns numpy arrays (``FilterInfo`` of
+        numpy scalars). is_jax: which of the two. info: static facts for reports (barrier, solver, slope, the
+        validity check); not traced.
     """
 
     name: str
@@ -88,8 +111,8 @@ class JaxFilter:
     params: Any
     reset_fn: Callable
     certify_fn: Callable
+    is_jax: bool = True
     info: Mapping = dataclasses.field(default_factory=dict)
-    is_jax: ClassVar[bool] = True
 
     def reset(self, key):
         return self.reset_fn(key)
@@ -97,31 +120,9 @@ class JaxFilter:
     def certify(self, x_or_obs, u_uncertified, filter_params, filter_state):
         return self.certify_fn(x_or_obs, u_uncertified, filter_params, filter_state)
 
-    def replace(self, **changes) -> JaxFilter:
+    def replace(self, **changes) -> Filter:
         """A copy with some fields changed (e.g. ``params`` of a trained network)."""
         return dataclasses.replace(self, **changes)
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class HostFilter:
-    """A filter that runs on the host, one copy at a time, with numpy arrays (CasADi, IPOPT, cvxpy).
-
-    Attributes as ``JaxFilter``; ``certify_fn`` takes and returns numpy arrays (``FilterInfo`` of numpy scalars).
-    """
-
-    name: str
-    system: str
-    params: Any
-    reset_fn: Callable
-    certify_fn: Callable
-    info: Mapping = dataclasses.field(default_factory=dict)
-    is_jax: ClassVar[bool] = False
-
-    def reset(self, key):
-        return self.reset_fn(key)
-
-    def certify(self, x_or_obs, u_uncertified, filter_params, filter_state):
-        return self.certify_fn(x_or_obs, u_uncertified, filter_params, filter_state)
 
 
 class FilterStats(NamedTuple):
@@ -163,7 +164,9 @@ def check_system(safety_filter, env) -> None:
 
 
 def _initial_info_and_stats(nu: int, xnp):
-    info = FilterInfo(feasible=xnp.asarray(True), slack=xnp.asarray(0.0), correction=xnp.zeros(nu))
+    info = FilterInfo(
+        feasible=xnp.asarray(True), slack=xnp.asarray(0.0), correction=xnp.zeros(nu), applied=xnp.asarray(CERTIFIED)
+    )
     stats = FilterStats(
         steps=xnp.asarray(0), interventions=xnp.asarray(0), correction_sum=xnp.asarray(0.0), infeasible=xnp.asarray(0)
     )
@@ -229,6 +232,7 @@ class FilteredController:
             feasible=np.asarray(bool(np.asarray(info.feasible))),
             slack=np.asarray(float(np.asarray(info.slack))),
             correction=np.asarray(info.correction, dtype=np.float64).reshape(self.nu),
+            applied=np.asarray(int(np.asarray(info.applied))),
         )
         stats = _update_stats(ctrl_state.stats, info, np)
         return np.asarray(u, dtype=np.float64).reshape(self.nu), FilteredState(
@@ -293,40 +297,54 @@ def filter_record(ctrl_state: FilteredState) -> dict:
         "filter_correction": ctrl_state.info.correction,
         "filter_feasible": ctrl_state.info.feasible,
         "filter_slack": ctrl_state.info.slack,
+        "filter_applied": ctrl_state.info.applied,
     }
 
 
-def intervention_metrics(correction, feasible, length) -> dict:
+def intervention_metrics(correction, feasible, length, applied=None) -> dict:
     """Intervention metrics over the steps inside each episode.
 
     Args:
-        correction: (T, N, nu) ``u - u_uncertified``, N. feasible: (T, N) bool. length: (N,) episode lengths.
+        correction: (T, N, nu) ``FilterInfo.correction``, N. feasible: (T, N) bool. length: (N,) episode lengths.
+        applied: (T, N) ``FilterInfo.applied`` codes, or ``None`` (then only the three first metrics).
 
     Returns:
         ``intervention_fraction`` (steps with ``|correction| > INTERVENTION_THRESHOLD`` / steps),
-        ``mean_correction`` (mean ``|correction|`` over steps, N) and ``infeasible_fraction`` (steps with
-        ``feasible = False`` / steps), plain floats over all episodes' steps.
+        ``mean_correction`` (mean ``|correction|`` over steps, N), ``infeasible_fraction`` (steps with
+        ``feasible = False`` / steps) and, with ``applied``, ``infeasible_<kind>_fraction`` for each fallback kind
+        of ``APPLIED`` (steps on which that input was applied / steps; they sum to ``infeasible_fraction``),
+        plain floats over all episodes' steps.
     """
     correction = np.asarray(correction, dtype=np.float64)
     magnitude = np.sqrt(np.sum(np.square(correction), axis=-1))
     in_episode = np.arange(magnitude.shape[0])[:, None] < np.asarray(length)[None, :]
     steps = max(int(in_episode.sum()), 1)
-    return {
+    metrics = {
         "intervention_fraction": float(((magnitude > INTERVENTION_THRESHOLD) & in_episode).sum() / steps),
         "mean_correction": float(np.where(in_episode, magnitude, 0.0).sum() / steps),
         "infeasible_fraction": float((~np.asarray(feasible, dtype=bool) & in_episode).sum() / steps),
     }
+    if applied is not None:
+        applied = np.asarray(applied)
+        for code, kind in enumerate(APPLIED[1:], start=1):
+            metrics[f"infeasible_{kind}_fraction"] = float(((applied == code) & in_episode).sum() / steps)
+    return metrics
 
 
 __all__ = [
+    "APPLIED",
+    "BACKUP_CONTROLLER",
+    "BACKUP_PLAN",
+    "BEST_EFFORT",
+    "CERTIFIED",
     "INTERVENTION_THRESHOLD",
+    "Filter",
     "FilterInfo",
     "FilterStats",
     "FilteredController",
     "FilteredState",
-    "HostFilter",
-    "JaxFilter",
     "SafetyFilter",
+    "applied_correction",
     "check_system",
     "filter_record",
     "filtered",

@@ -3,7 +3,7 @@ proposed input that keeps a plan back into safety, on the linearised prior with 
 
 Two filters share one ``Options`` (``safety_filters.linear_mpsc``; the CasADi variant reads the same fields):
 
-- ``make_linear_mpsc`` (``"linear_mpsc"``): a ``JaxFilter``; ``certify`` is pure JAX of one copy, so the harness
+- ``make_linear_mpsc`` (``"linear_mpsc"``): a JAX ``Filter``; ``certify`` is pure JAX of one copy, so the harness
   vmaps it over thousands of copies. Its QP is solved by an ADMM with one factorisation shared by the batch
   (``solver="admm"``, ``mpsc_admm``) or by qpax's interior point (``solver="qpax"``, per-copy factorisation).
 - ``make_linear_mpsc_casadi``: the same QP for one copy on the host, formulated independently with
@@ -55,8 +55,10 @@ Units: SI (m, rad, N); the filter's arrays in the default float dtype, built in 
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any, ClassVar, NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -67,8 +69,15 @@ from scg_algorithms.mpc import qp as qp_lib
 from scg_algorithms.mpc.linear import _constraint_rows
 from scg_algorithms.safety_filters import mpsc_admm
 from scg_algorithms.safety_filters import mpsc_tightening as tight
-from scg_algorithms.safety_filters.base import FilterInfo, JaxFilter
-from scg_jax.validation import weight_matrix
+from scg_algorithms.safety_filters.backup import backup_weights, diagonal_weight, failure_rows, validation_states
+from scg_algorithms.safety_filters.base import (
+    BACKUP_CONTROLLER,
+    BACKUP_PLAN,
+    CERTIFIED,
+    Filter,
+    FilterInfo,
+    applied_correction,
+)
 
 PATH = "safety_filters.linear_mpsc"
 CASADI_PATH = "safety_filters.linear_mpsc_casadi"
@@ -82,9 +91,12 @@ QPAX_OBJECTIVE_SCALE = 1e3  # the objective's factor in the qpax solve (see cert
 class Options:
     """Options of the linear MPSC (``safety_filters.linear_mpsc``)."""
 
-    horizon: int = option(20, "prediction horizon H, control steps")
-    q_lqr: tuple | None = option(None, "diagonal state weight (nx,) of the ancillary LQR K; default ones")
-    r_lqr: tuple | None = option(None, "diagonal input weight (nu,) of the ancillary LQR K; default ones")
+    horizon: int = option(20, "prediction horizon H, control steps (the plan's free inputs)")
+    terminal_horizon: float = option(
+        2.0, "seconds the plan's tail follows the ancillary LQR inside the tightened rows (the terminal set); 0: none"
+    )
+    q_lqr: tuple | None = option(None, "diagonal state weight (nx,) of the ancillary LQR K; default: see backup")
+    r_lqr: tuple | None = option(None, "diagonal input weight (nu,) of the ancillary LQR K; default: see backup")
     discretization: str = option(
         "env", "model: the env's integrator and substeps, or one RK4 step per period", choices=setup.DISCRETIZATIONS
     )
@@ -94,15 +106,20 @@ class Options:
         choices=TIGHTENINGS,
     )
     n_samples: int = option(600, "plant transitions sampled for the model-error bound")
+    plant_draws: int = option(8, "plants drawn from the env's physics randomisation for the samples (1: nominal)")
     sample_seed: int = option(0, "PRNG seed of the samples")
     sample_half_width: tuple | None = option(
         None, "(nx,) half-widths of the box around the goal the sampled states fill; default: the env's reset draw"
     )
     tau: float = option(0.95, "S-procedure contraction of the invariant-ellipsoid program, in (0, 1)")
     sdp_solver: str = option("clarabel", "conic solver of the invariant-set program (cvxpy)", choices=tight.SDP_SOLVERS)
-    error_quantile: float = option(1.0, "quantile of |w - mean| bounding the error per dimension (reachable)")
+    error_quantile: float | None = option(
+        None,
+        "quantile of |w - mean| bounding the error per dimension (reachable); default: the largest of 1, 0.9, 0.75, "
+        "0.5 whose tube leaves the goal inside the tightened rows",
+    )
     constraint_margin: float = option(0.0, "extra margin on every row that involves the state (row units)")
-    regularization: float = option(1e-4, "weight of 1/2 |v_1..v_H-1|^2, makes the QP strictly convex")
+    regularization: float = option(1e-3, "weight of 1/2 |v_1..v_H-1|^2: the plan's later inputs stay near the LQR's")
     solver: str = option("admm", "QP solver: shared-factorisation ADMM or qpax interior point", choices=SOLVERS)
     admm_iterations: int = option(500, "ADMM iterations per solve (fixed)")
     admm_rho: float = option(0.1, "ADMM step size rho")
@@ -114,7 +131,7 @@ class Options:
     casadi_solver: str = option("qpoases", "conic solver of the CasADi variant", choices=CASADI_SOLVERS)
 
     def _check(self, path: str) -> None:
-        for name in ("horizon", "n_samples", "admm_iterations", "qpax_iterations"):
+        for name in ("horizon", "n_samples", "plant_draws", "admm_iterations", "qpax_iterations"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{path}.{name}: must be a positive integer, got {getattr(self, name)!r}")
         for name in ("admm_rho", "admm_sigma", "feasibility_tol"):
@@ -123,9 +140,9 @@ class Options:
             raise ValueError(f"{path}.tau: must be in (0, 1), got {self.tau!r}")
         if not 0.0 < self.admm_alpha < 2.0:
             raise ValueError(f"{path}.admm_alpha: must be in (0, 2), got {self.admm_alpha!r}")
-        if not 0.0 < self.error_quantile <= 1.0:
+        if self.error_quantile is not None and not 0.0 < self.error_quantile <= 1.0:
             raise ValueError(f"{path}.error_quantile: must be in (0, 1], got {self.error_quantile!r}")
-        for name in ("constraint_margin", "regularization"):
+        for name in ("constraint_margin", "regularization", "terminal_horizon"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
 
@@ -136,12 +153,14 @@ class Problem:
     """What both variants build on the host (numpy float64).
 
     Attributes:
-        options: parsed ``Options``. system: the env's system name. nx, nu, horizon: sizes.
+        options: parsed ``Options``. system: the env's system name. nx, nu, horizon: sizes (``horizon`` H decisions).
+        stages: H plus the terminal tail's steps (the rows are imposed at every stage).
         affine: ``qp_lib.AffineModel`` about the goal with the ancillary ``K``. K: (nu, nx). x_bar: (nx,) goal.
         u_bar: (nu,) equilibrium input, N. rows: ``qp_lib.ConstraintRows`` (actuator limits and the env's linear
-        rows, merged). margins: (H, m) tightening of each row at each stage. u_low, u_high: (nu,) clip box, N.
+        rows, merged). margins: (stages, m) tightening of each row at each stage. u_low, u_high: (nu,) clip box, N.
         errors: (n, nx) model-error samples (empty without tightening). P_rpi: (nx, nx) the invariant ellipsoid
         (``tightening="rpi"``) or ``None``. qp: the condensed ``qp_lib.CondensedQP`` (its objective unused).
+        error_quantile: the quantile of the error bound the tube uses (``error_quantile``, or the one chosen).
     """
 
     options: Options
@@ -149,6 +168,7 @@ class Problem:
     nx: int
     nu: int
     horizon: int
+    stages: int
     affine: Any
     K: np.ndarray
     x_bar: np.ndarray
@@ -160,6 +180,7 @@ class Problem:
     errors: np.ndarray
     P_rpi: np.ndarray | None
     qp: Any
+    error_quantile: float = 1.0
 
 
 def build_problem(env, prior_params, options=None, plant_params=None, path: str = PATH) -> Problem:
@@ -171,48 +192,154 @@ def build_problem(env, prior_params, options=None, plant_params=None, path: str 
     """
     opts = parse_options(Options, options, path)
     nx, nu, H = env.nx, env.nu, opts.horizon
-    Q_lqr = np.eye(nx) if opts.q_lqr is None else weight_matrix(opts.q_lqr, f"{path}.q_lqr", nx, diagonal_only=True)
-    R_lqr = np.eye(nu) if opts.r_lqr is None else weight_matrix(opts.r_lqr, f"{path}.r_lqr", nu, diagonal_only=True)
-    if np.diag(R_lqr).min() <= 0:
-        raise ValueError(f"{path}.r_lqr: the LQR input weight must be positive, got {np.diag(R_lqr).tolist()}")
     if opts.sample_half_width is not None and len(opts.sample_half_width) != nx:
         raise ValueError(f"{path}.sample_half_width: expected {nx} values, got {len(opts.sample_half_width)}")
     model = setup.prior_model(env, prior_params, opts.discretization)
     x_bar = np.asarray(prior_params.goal, dtype=np.float64).reshape(nx)
     u_bar = setup.equilibrium_input(env, prior_params)
     Ad, Bd, c = setup.linearize_along(model, x_bar[None], u_bar)
-    try:
-        K, _ = discrete_lqr_gain(Ad[0], Bd[0], Q_lqr, R_lqr)
-    except ValueError as error:
-        raise ValueError(f"{path}.q_lqr: the ancillary LQR has no stabilising solution ({error})") from None
+    rows, u_low, u_high = mpsc_rows(env, prior_params, path)
+    stages = H + terminal_steps(env, opts)
+    errors = np.zeros((0, nx))
+    if opts.tightening != "none":
+        plant = env.default_params if plant_params is None else plant_params
+        x, u, x_next = tight.sample_transitions(
+            env, plant, opts.n_samples, opts.sample_seed, opts.sample_half_width, opts.plant_draws
+        )
+        errors = x_next - (x @ Ad[0].T + u @ Bd[0].T + c[0])
+
+    weights = ancillary_weights(env, prior_params, rows, x_bar, opts, path)
+    quantiles = tight.error_quantiles(opts.error_quantile) if opts.tightening == "reachable" else (1.0,)
+    candidates, refusal = [], None
+    for quantile in quantiles:  # the largest error bound whose tube leaves room; each gain's tube differs
+        for q, r in weights:
+            try:
+                K, _ = discrete_lqr_gain(Ad[0], Bd[0], np.diag(q), np.diag(r))
+            except ValueError as error:
+                raise ValueError(f"{path}.q_lqr: the ancillary LQR has no stabilising solution ({error})") from None
+            A_cl = Ad[0] - Bd[0] @ K
+            P_rpi = None
+            margins = np.zeros((stages, rows.num_rows))
+            if opts.tightening == "rpi":
+                P_rpi = tight.rpi_ellipsoid(A_cl, errors, opts.tau, opts.sdp_solver, f"{path}.tau")
+                margins = np.tile(tight.ellipsoid_tightening(rows.Ax, rows.Au, K, P_rpi), (stages, 1))
+            elif opts.tightening == "reachable":
+                _, w_bar = tight.error_box(errors, quantile)
+                margins = tight.reachable_tightening(rows.Ax, rows.Au, K, A_cl, w_bar, stages)
+            # The tail is the terminal set: it keeps the last free stage's tightening (the tube's margins keep
+            # growing along a slow closed loop, and a tail 100 steps long would tighten the rows away).
+            margins[H:] = margins[H - 1]
+            margins = margins + opts.constraint_margin * rows.soft[None, :]
+            try:
+                _check_margins(rows, margins, u_low, u_high, path)
+            except ValueError as error:
+                refusal = error  # this gain's tube leaves no input; another candidate's may
+                continue
+            reason = tight.tube_room(rows, margins, x_bar, u_bar)
+            if reason is not None:
+                refusal = ValueError(
+                    f"{path}.tightening: {reason}; lower the model error (sample_half_width, plant_draws, a better "
+                    "prior), give a smaller error_quantile or make the ancillary LQR gentler (larger r_lqr)"
+                )
+                continue
+            candidates.append((K, P_rpi, margins, quantile))
+        if candidates:
+            break
+    if not candidates:
+        raise refusal
+    if len(candidates) > 1:  # keep the ancillary LQR whose terminal set holds the most sampled states
+        states = validation_states(env, prior_params, 2000, jax.random.key(1))
+        held = [
+            terminal_set_fraction(states, Ad[0], Bd[0], c[0], K, x_bar, u_bar, rows, margins[H:])
+            for K, _, margins, _ in candidates
+        ]
+        K, P_rpi, margins, quantile = candidates[int(np.argmax(held))]
+    else:
+        K, P_rpi, margins, quantile = candidates[0]
     affine = qp_lib.AffineModel(Ad=Ad, Bd=Bd, c=c, x_bar=x_bar[None], u_bar=u_bar, K=K[None], P=np.zeros((1, nx, nx)))
+    qp = decision_prefix(qp_lib.build_qp(affine, stages, np.zeros((nx, nx)), np.zeros((nu, nu)), rows), H, nu)
+    return Problem(
+        opts, env.system.name, nx, nu, H, stages, affine, K, x_bar, u_bar, rows, margins, u_low, u_high, errors,
+        P_rpi, qp, quantile,
+    )  # fmt: skip
+
+
+def mpsc_rows(env, prior_params, path: str):
+    """``(rows, u_low, u_high)``: the actuator limits and the env's linear constraints (``_constraint_rows``) with
+    the system's failure bounds appended as state rows (a plan through them, which the linearised model may
+    find, would lose the plant), and the clip box, N.
+
+    Raises:
+        ValueError: naming ``path`` when the env constrains no state (there is nothing to certify).
+    """
     rows, _, _, u_low, u_high = _constraint_rows(env, prior_params, True)
     if not np.any(rows.soft):
         raise ValueError(
             f"{path}: the env has no linear constraint on the state, so there is nothing to certify; make the env "
             "with constraints (e.g. {'type': 'bounded', 'on': 'state', ...})"
         )
+    A, b = failure_rows(env.system)
+    rows = qp_lib.ConstraintRows(
+        Ax=np.concatenate([rows.Ax, A]),
+        Au=np.concatenate([rows.Au, np.zeros((A.shape[0], env.nu))]),
+        b=np.concatenate([rows.b, b]),
+        soft=np.concatenate([rows.soft, np.ones(A.shape[0], bool)]),
+    )
+    return rows, u_low, u_high
 
-    A_cl = Ad[0] - Bd[0] @ K
-    errors = np.zeros((0, nx))
-    P_rpi = None
-    margins = np.zeros((H, rows.num_rows))
-    if opts.tightening != "none":
-        plant = env.default_params if plant_params is None else plant_params
-        x, u, x_next = tight.sample_transitions(env, plant, opts.n_samples, opts.sample_seed, opts.sample_half_width)
-        errors = x_next - (x @ Ad[0].T + u @ Bd[0].T + c[0])
-        if opts.tightening == "rpi":
-            P_rpi = tight.rpi_ellipsoid(A_cl, errors, opts.tau, opts.sdp_solver, f"{path}.tau")
-            margins = np.tile(tight.ellipsoid_tightening(rows.Ax, rows.Au, K, P_rpi), (H, 1))
-        else:
-            _, w_bar = tight.error_box(errors, opts.error_quantile)
-            margins = tight.reachable_tightening(rows.Ax, rows.Au, K, A_cl, w_bar, H)
-    margins = margins + opts.constraint_margin * rows.soft[None, :]
-    _check_margins(rows, margins, u_low, u_high, path)
-    zero = np.zeros((nx, nx))
-    qp = qp_lib.build_qp(affine, H, zero, np.zeros((nu, nu)), rows)
-    return Problem(
-        opts, env.system.name, nx, nu, H, affine, K, x_bar, u_bar, rows, margins, u_low, u_high, errors, P_rpi, qp
+
+def terminal_steps(env, opts: Options) -> int:
+    """Control steps of the plan's tail (``terminal_horizon`` seconds, rounded up; 0 without a terminal set)."""
+    return max(0, math.ceil(opts.terminal_horizon / env.dt - 1e-9))
+
+
+def ancillary_weights(env, prior_params, rows, x_bar, opts: Options, path: str) -> list[tuple[np.ndarray, ...]]:
+    """Candidate ``(q (nx,), r (nu,))`` of the ancillary LQR: ``q_lqr``, ``r_lqr`` where given, else the backup
+    controller's candidates (``scg_algorithms.safety_filters.backup.backup_weights``) from the state rows."""
+    nx, nu = env.nx, env.nu
+    state_rows = rows.soft & np.all(rows.Au == 0.0, axis=1)
+    norms = np.linalg.norm(rows.Ax[state_rows], axis=1)
+    defaults = backup_weights(
+        env, prior_params, rows.Ax[state_rows] / norms[:, None], rows.b[state_rows] / norms, x_bar
+    )
+    candidates = []
+    for default_q, default_r in defaults:
+        q = diagonal_weight(opts.q_lqr, f"{path}.q_lqr", default_q, nx)
+        r = diagonal_weight(opts.r_lqr, f"{path}.r_lqr", default_r, nu)
+        if min(r) <= 0:
+            raise ValueError(f"{path}.r_lqr: the LQR input weight must be positive, got {list(r)}")
+        candidates.append((q, r))
+        if opts.q_lqr is not None and opts.r_lqr is not None:
+            break
+    return candidates
+
+
+def terminal_set_fraction(states, Ad, Bd, c, K, x_bar, u_bar, rows, margins) -> float:
+    """The fraction of ``states`` (n, nx) from which the ancillary LQR ``u = u_bar - K (x - x_bar)`` on the
+    linearised prior ``x+ = Ad x + Bd u + c`` keeps every row ``Ax x+ + Au u <= b - margin_j`` for the
+    ``len(margins)`` steps of the terminal tail."""
+    x = np.asarray(states, dtype=np.float64)
+    held = np.ones(x.shape[0], bool)
+    for margin in margins:
+        u = u_bar - (x - x_bar) @ K.T
+        x = x @ Ad.T + u @ Bd.T + c
+        held &= np.all(x @ rows.Ax.T + u @ rows.Au.T <= rows.b - margin, axis=1)
+    return float(held.mean())
+
+
+def decision_prefix(qp, horizon: int, nu: int):
+    """``qp`` (condensed over ``qp.horizon`` stages) with only the first ``horizon`` decisions ``v_0..v_{H-1}``:
+    the later ones are 0, so those stages follow the ancillary LQR (the plan's tail, whose rows are the terminal
+    set). The parameter layout ``theta`` keeps every stage."""
+    nz_full, nz = qp.hess.shape[-1], horizon * nu
+    if nz_full == nz:
+        return qp
+    return dataclasses.replace(
+        qp,
+        hess=qp.hess[:, :nz, :nz],
+        G=qp.G[:, :, :nz],
+        q_map=qp.q_map[:, :nz, :],
+        u0_map=np.concatenate([qp.u0_map[:, :, :nz], qp.u0_map[:, :, nz_full:]], axis=2),
     )
 
 
@@ -269,7 +396,7 @@ class LinearMPSCState(NamedTuple):
 
 def qp_data(problem: Problem) -> dict:
     """The QP of ``problem`` in the reduced form of ``LinearMPSCParams`` (numpy float64, before the ADMM inverse)."""
-    qp, opts, nx, nu, H = problem.qp, problem.options, problem.nx, problem.nu, problem.horizon
+    qp, opts, nx, nu, H = problem.qp, problem.options, problem.nx, problem.nu, problem.stages
     m = problem.rows.num_rows
     norms = np.linalg.norm(np.concatenate([problem.rows.Ax, problem.rows.Au], axis=1), axis=1)
     h_map = qp.h_map[0].copy()
@@ -300,7 +427,7 @@ def qp_of(params: LinearMPSCParams, x, u_uncertified):
     return q, h
 
 
-def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> JaxFilter:
+def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> Filter:
     """Batched linear MPSC in JAX (see the module docstring).
 
     Args:
@@ -310,7 +437,7 @@ def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> JaxF
             ``env.default_params``).
 
     Returns:
-        A ``JaxFilter`` named ``"linear_mpsc"``; ``certify(obs, u_uncertified, params, state)`` returns the certified
+        A JAX ``Filter`` named ``"linear_mpsc"``; ``certify(obs, u_uncertified, params, state)`` returns the certified
         input (nu,), N, ``LinearMPSCState`` and ``FilterInfo``. ``info`` holds the host ``problem``.
 
     Raises:
@@ -333,6 +460,7 @@ def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> JaxF
     )
     nx, nu, H = problem.nx, problem.nu, problem.horizon
     nz, p = data["hess"].shape[0], data["G"].shape[0]
+    rows_per_stage = p // problem.stages
     system = problem.system
 
     def reset(key):
@@ -349,10 +477,12 @@ def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> JaxF
                 f"shape {tuple(obs.shape)} and an input of shape {tuple(u_uncertified.shape)} (one copy)"
             )
         x = jnp.asarray(obs[:nx], dtype)
-        q, h = qp_of(params, x, u_uncertified)
+        u_target = jnp.clip(u_uncertified, params.u_low, params.u_high)
+        q, h = qp_of(params, x, u_target)
         if opts.solver == "admm":
-            z0 = state.z if opts.warm_start else None
-            y0 = state.y if opts.warm_start else None
+            # Warm start from the last solution shifted by one stage (its tail is the plan from here on).
+            z0 = jnp.concatenate([state.z[nu:], jnp.zeros(nu, dtype)]) if opts.warm_start else None
+            y0 = jnp.concatenate([state.y[rows_per_stage:], state.y[-rows_per_stage:]]) if opts.warm_start else None
             sol = mpsc_admm.admm_solve(
                 params.M_inv,
                 params.G,
@@ -381,6 +511,10 @@ def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> JaxF
             z, y, violation = sol.z, state.y, jnp.where(sol.status == qp_lib.STATUS_FAILED, jnp.inf, sol.violation)
         u_qp = params.U0z @ z + params.U0x @ x + params.u0c
         feasible = (violation <= opts.feasibility_tol) & jnp.all(jnp.isfinite(u_qp))
+        # The proposal itself where the solved plan, started with it instead (v_0 enters u_0 with the identity),
+        # still holds every row: the solver's error on a safe proposal is no correction.
+        passes = feasible & (jnp.max(params.G @ z.at[:nu].add(u_target - u_qp) - h) <= opts.feasibility_tol)
+        u_qp = jnp.where(passes, u_target, u_qp)
         kinf = jnp.where(feasible, 0, jnp.minimum(state.kinf + 1, H))
         v_plan = jnp.where(feasible, z[: H * nu].reshape(H, nu), state.v_plan)
         v_backup = jnp.where(kinf < H, v_plan[jnp.minimum(kinf, H - 1)], 0.0)
@@ -389,11 +523,20 @@ def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> JaxF
         # A failed solve's iterate is a poor warm start: restart from zeros.
         z_next = jnp.where(feasible, z, jnp.zeros_like(z))
         y_next = jnp.where(feasible, y, jnp.zeros_like(y))
-        info = FilterInfo(feasible=feasible, slack=jnp.zeros((), dtype), correction=u - u_uncertified)
+        applied = jnp.where(feasible, CERTIFIED, jnp.where(kinf < H, BACKUP_PLAN, BACKUP_CONTROLLER))
+        info = FilterInfo(
+            feasible=feasible,
+            slack=jnp.zeros((), dtype),
+            correction=applied_correction(u, u_uncertified, params.u_low, params.u_high),
+            applied=applied,
+        )
         return u, LinearMPSCState(v_plan, kinf.astype(jnp.int32), z_next, y_next), info
 
-    info = {"problem": problem, "options": opts, "horizon": H, "solver": opts.solver}
-    return JaxFilter(name="linear_mpsc", system=system, params=params, reset_fn=reset, certify_fn=certify, info=info)
+    info = {
+        "problem": problem, "options": opts, "horizon": H, "solver": opts.solver,
+        "error_quantile": problem.error_quantile, "tightening_max": problem.margins.max(axis=0).tolist(),
+    }  # fmt: skip
+    return Filter(name="linear_mpsc", system=system, params=params, reset_fn=reset, certify_fn=certify, info=info)
 
 
 # --------------------------------------------------------------------------------------------- CasADi reference
@@ -453,7 +596,9 @@ class LinearMPSCCasadi:
             state = {"v_plan": filter_state["v_plan"], "kinf": kinf}
             u = problem.u_bar - problem.K @ (x - problem.x_bar) + v
         u = np.clip(u, problem.u_low, problem.u_high)
-        return u, state, FilterInfo(feasible=success, slack=0.0, correction=u - u_l)
+        applied = CERTIFIED if success else (BACKUP_PLAN if state["kinf"] < H else BACKUP_CONTROLLER)
+        correction = applied_correction(u, u_l, problem.u_low, problem.u_high, np)
+        return u, state, FilterInfo(feasible=success, slack=0.0, correction=correction, applied=applied)
 
 
 def make_linear_mpsc_casadi(env, prior_params, options=None, plant_params=None) -> LinearMPSCCasadi:
@@ -483,6 +628,11 @@ def make_linear_mpsc_casadi(env, prior_params, options=None, plant_params=None) 
     Ax, Au = cs.DM(rows.Ax), cs.DM(rows.Au)
     for j in range(H):
         opti.subject_to(Ax @ X[j + 1] + Au @ U[:, j] <= cs.DM(rows.b - problem.margins[j]))
+    x_tail = X[H]
+    for j in range(H, problem.stages):  # the terminal set: the tail under the ancillary LQR keeps the rows
+        u_tail = u_bar - K @ (x_tail - x_bar)
+        x_tail = A @ x_tail + B @ u_tail + c
+        opti.subject_to(Ax @ x_tail + Au @ u_tail <= cs.DM(rows.b - problem.margins[j]))
     if opts.casadi_solver == "qpoases":
         solver_options = {"printLevel": "none", "error_on_fail": False, "expand": True}
     else:

@@ -28,15 +28,21 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax
 import numpy as np
 
 from scg_algorithms import controller_setup as setup
 from scg_algorithms.base import option, parse_options, positive
 from scg_algorithms.lqr import discrete_lqr_gain
-from scg_algorithms.mpc.linear import _constraint_rows
 from scg_algorithms.safety_filters import mpsc_tightening as tight
-from scg_algorithms.safety_filters.base import FilterInfo
-from scg_jax.validation import weight_matrix
+from scg_algorithms.safety_filters.backup import validation_states
+from scg_algorithms.safety_filters.base import (
+    BACKUP_CONTROLLER,
+    BACKUP_PLAN,
+    CERTIFIED,
+    FilterInfo,
+    applied_correction,
+)
 
 PATH = "safety_filters.nonlinear_mpsc"
 TIGHTENINGS = ("reachable", "none")
@@ -47,9 +53,12 @@ FEASIBILITY_TOL = 1e-6  # largest dynamics residual and row violation (state uni
 class Options:
     """Options of the nonlinear MPSC (``safety_filters.nonlinear_mpsc``)."""
 
-    horizon: int = option(20, "prediction horizon H, control steps")
-    q_lqr: tuple | None = option(None, "diagonal state weight (nx,) of the ancillary LQR K; default ones")
-    r_lqr: tuple | None = option(None, "diagonal input weight (nu,) of the ancillary LQR K; default ones")
+    horizon: int = option(20, "prediction horizon H, control steps (the plan's free inputs)")
+    terminal_horizon: float = option(
+        2.0, "seconds the ancillary LQR on the linearised model continues from X_H inside the rows (terminal set)"
+    )
+    q_lqr: tuple | None = option(None, "diagonal state weight (nx,) of the ancillary LQR K; default: see backup")
+    r_lqr: tuple | None = option(None, "diagonal input weight (nu,) of the ancillary LQR K; default: see backup")
     discretization: str = option(
         "rk4",
         "model: one RK4 step per period (the fork's default), or the env's integrator and substeps",
@@ -57,26 +66,31 @@ class Options:
     )
     tightening: str = option("reachable", "per-stage tightening from the model error, or none", choices=TIGHTENINGS)
     n_samples: int = option(600, "plant transitions sampled for the model-error bound")
+    plant_draws: int = option(8, "plants drawn from the env's physics randomisation for the samples (1: nominal)")
     sample_seed: int = option(0, "seed of the samples")
     sample_half_width: tuple | None = option(
         None, "(nx,) half-widths of the box around the goal the sampled states fill; default: the env's init box"
     )
-    error_quantile: float = option(1.0, "quantile of |w - mean| bounding the error per dimension")
+    error_quantile: float | None = option(
+        None,
+        "quantile of |w - mean| bounding the error per dimension; default: the largest of 1, 0.9, 0.75, 0.5 whose "
+        "tube leaves the goal inside the tightened rows",
+    )
     model_bias: bool = option(True, "add the mean sampled model error to the prediction model")
     constraint_margin: float = option(0.0, "extra margin on every row that involves the state (row units)")
-    regularization: float = option(1e-4, "weight of the deviation of U_j from the tube feedback (j >= 1)")
+    regularization: float = option(1e-3, "weight of the deviation of U_j from the tube feedback (j >= 1)")
     max_iter: int = option(100, "IPOPT iterations at most")
     tol: float = option(1e-8, "IPOPT tolerance")
     warm_start: bool = option(True, "start IPOPT from the previous plan shifted by one step")
 
     def _check(self, path: str) -> None:
-        for name in ("horizon", "n_samples", "max_iter"):
+        for name in ("horizon", "n_samples", "plant_draws", "max_iter"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{path}.{name}: must be a positive integer, got {getattr(self, name)!r}")
         positive(f"{path}.tol", self.tol)
-        if not 0.0 < self.error_quantile <= 1.0:
+        if self.error_quantile is not None and not 0.0 < self.error_quantile <= 1.0:
             raise ValueError(f"{path}.error_quantile: must be in (0, 1], got {self.error_quantile!r}")
-        for name in ("constraint_margin", "regularization"):
+        for name in ("constraint_margin", "regularization", "terminal_horizon"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
 
@@ -98,50 +112,77 @@ class NonlinearMPSC:
     def __init__(self, env, prior_params, opts: Options, plant_params=None):
         import casadi as cs
 
+        from scg_algorithms.safety_filters.mpsc_linear import (
+            ancillary_weights,
+            mpsc_rows,
+            terminal_set_fraction,
+            terminal_steps,
+        )
+
         self.options = opts
         self.system = env.system.name
         nx, nu, H = self.nx, self.nu, self.horizon = env.nx, env.nu, opts.horizon
-        Q_lqr = np.eye(nx) if opts.q_lqr is None else weight_matrix(opts.q_lqr, f"{PATH}.q_lqr", nx, diagonal_only=True)
-        R_lqr = np.eye(nu) if opts.r_lqr is None else weight_matrix(opts.r_lqr, f"{PATH}.r_lqr", nu, diagonal_only=True)
-        if np.diag(R_lqr).min() <= 0:
-            raise ValueError(f"{PATH}.r_lqr: the LQR input weight must be positive, got {np.diag(R_lqr).tolist()}")
         if opts.sample_half_width is not None and len(opts.sample_half_width) != nx:
             raise ValueError(f"{PATH}.sample_half_width: expected {nx} values, got {len(opts.sample_half_width)}")
         model = setup.prior_model(env, prior_params, opts.discretization)
         self.x_goal = np.asarray(prior_params.goal, dtype=np.float64).reshape(nx)
         self.u_eq = setup.equilibrium_input(env, prior_params)
-        lin = model.linearize(self.x_goal, self.u_eq)
-        try:
-            self.K, _ = discrete_lqr_gain(lin.Ad, lin.Bd, Q_lqr, R_lqr)
-        except ValueError as error:
-            raise ValueError(f"{PATH}.q_lqr: the ancillary LQR has no stabilising solution ({error})") from None
-        rows, _, _, self.u_low, self.u_high = _constraint_rows(env, prior_params, True)
-        if not np.any(rows.soft):
-            raise ValueError(
-                f"{PATH}: the env has no linear constraint on the state, so there is nothing to certify; make the "
-                "env with constraints (e.g. {'type': 'bounded', 'on': 'state', ...})"
-            )
+        Ad, Bd, c = (a[0] for a in setup.linearize_along(model, self.x_goal[None], self.u_eq))
+        rows, self.u_low, self.u_high = mpsc_rows(env, prior_params, PATH)
         self.rows = rows
+        stages = self.stages = H + terminal_steps(env, opts)
 
         self.bias = np.zeros(nx)
         self.errors = np.zeros((0, nx))
-        margins = np.zeros((H, rows.num_rows))
+        mean = np.zeros(nx)
         if opts.tightening != "none" or opts.model_bias:
             plant = env.default_params if plant_params is None else plant_params
             x, u, x_next = tight.sample_transitions(
-                env, plant, opts.n_samples, opts.sample_seed, opts.sample_half_width
+                env, plant, opts.n_samples, opts.sample_seed, opts.sample_half_width, opts.plant_draws
             )
             predicted = np.asarray(model.fd.map(x.shape[0])(x.T, u.T), dtype=np.float64).T
             self.errors = x_next - predicted
-            mean, w_bar = tight.error_box(self.errors, opts.error_quantile)
+            mean = self.errors.mean(axis=0)
             if opts.model_bias:
                 self.bias = mean
-            else:  # without the bias in the model, the bound must cover the mean error too
-                w_bar = w_bar + np.abs(mean)
-            if opts.tightening == "reachable":
-                A_cl = lin.Ad - lin.Bd @ self.K
-                margins = tight.reachable_tightening(rows.Ax, rows.Au, self.K, A_cl, w_bar, H)
-        self.margins = margins + opts.constraint_margin * rows.soft[None, :]
+        weights = ancillary_weights(env, prior_params, rows, self.x_goal, opts, PATH)
+        quantiles = tight.error_quantiles(opts.error_quantile) if opts.tightening == "reachable" else (1.0,)
+        candidates, reason = [], None
+        for quantile in quantiles:  # the largest error bound whose tube leaves room (as the linear MPSC's)
+            for q, r in weights:
+                try:
+                    K, _ = discrete_lqr_gain(Ad, Bd, np.diag(q), np.diag(r))
+                except ValueError as error:
+                    raise ValueError(f"{PATH}.q_lqr: the ancillary LQR has no stabilising solution ({error})") from None
+                margins = np.zeros((stages, rows.num_rows))
+                if opts.tightening == "reachable":
+                    _, w_bar = tight.error_box(self.errors, quantile)
+                    if not opts.model_bias:  # without the bias in the model, the bound must cover the mean too
+                        w_bar = w_bar + np.abs(mean)
+                    margins = tight.reachable_tightening(rows.Ax, rows.Au, K, Ad - Bd @ K, w_bar, stages)
+                    margins[H:] = margins[H - 1]  # the terminal tail keeps the last free stage's tightening
+                margins = margins + opts.constraint_margin * rows.soft[None, :]
+                reason = tight.tube_room(rows, margins, self.x_goal, self.u_eq)
+                if reason is None:
+                    candidates.append((K, margins))
+            if candidates:
+                self.error_quantile = quantile
+                break
+        if not candidates:
+            raise ValueError(
+                f"{PATH}.tightening: {reason}; lower the model error (sample_half_width, plant_draws, a better "
+                "prior) or give a smaller error_quantile"
+            )
+        if len(candidates) > 1:  # keep the ancillary LQR whose terminal set holds the most sampled states
+            states = validation_states(env, prior_params, 2000, jax.random.key(1))
+            held = [
+                terminal_set_fraction(states, Ad, Bd, c + self.bias, K, self.x_goal, self.u_eq, rows, m[H:])
+                for K, m in candidates
+            ]
+            self.K, self.margins = candidates[int(np.argmax(held))]
+        else:
+            self.K, self.margins = candidates[0]
+        self._tail = (Ad, Bd, c + self.bias)
 
         opti = cs.Opti()
         X = opti.variable(nx, H + 1)
@@ -158,6 +199,10 @@ class NonlinearMPSC:
             opti.subject_to(Ax @ X[:, j + 1] + Au @ U[:, j] <= cs.DM(rows.b - self.margins[j]))
             if j >= 1:  # v_0 is left alone so that a safe proposal is the exact optimum
                 cost += 0.5 * opts.regularization * cs.sumsqr(U[:, j] - u_eq + K @ (X[:, j] - goal))
+        # The terminal set: from X_H the ancillary LQR on the linearised model keeps the rows over the tail.
+        tail_rows = self._tail_rows(X[:, H], cs)
+        if self.stages > H:
+            opti.subject_to(tail_rows <= 0)
         opti.minimize(cost)
         ipopt = {"print_level": 0, "sb": "yes", "max_iter": opts.max_iter, "tol": opts.tol}
         opti.solver("ipopt", {"print_time": False, "error_on_fail": False, "expand": True}, ipopt)
@@ -172,6 +217,19 @@ class NonlinearMPSC:
                 )
             ],
         ).expand()
+        self._tail_excess = cs.Function("tail", [X], [tail_rows]).expand()
+
+    def _tail_rows(self, x_H, cs):
+        """The rows' excess ``Ax x + Au u - (b - margin)`` along the terminal tail from ``x_H`` (CasADi)."""
+        Ad, Bd, c = (cs.DM(a) for a in self._tail)
+        K, goal, u_eq = cs.DM(self.K), cs.DM(self.x_goal), cs.DM(self.u_eq)
+        Ax, Au = cs.DM(self.rows.Ax), cs.DM(self.rows.Au)
+        x, excess = x_H, []
+        for j in range(self.horizon, self.stages):
+            u = u_eq - K @ (x - goal)
+            x = Ad @ x + Bd @ u + c
+            excess.append(Ax @ x + Au @ u - cs.DM(self.rows.b - self.margins[j]))
+        return cs.vertcat(*excess) if excess else cs.DM.zeros(0)
 
     def reset(self, key):
         """No plan yet: ``kinf = H`` (a failure at the first step falls back to the LQR)."""
@@ -188,17 +246,20 @@ class NonlinearMPSC:
         if not (np.all(np.isfinite(X)) and np.all(np.isfinite(U))):
             return X, U, False
         dynamics = np.abs(np.asarray(self._residual(x, X.T, U.T))).max()
-        rows = X[1:] @ self.rows.Ax.T + U @ self.rows.Au.T - (self.rows.b - self.margins)
-        return X, U, bool(dynamics <= FEASIBILITY_TOL and rows.max() <= FEASIBILITY_TOL)
+        rows = X[1:] @ self.rows.Ax.T + U @ self.rows.Au.T - (self.rows.b - self.margins[: self.horizon])
+        tail = np.asarray(self._tail_excess(X.T), dtype=np.float64)
+        excess = max(rows.max(), tail.max(initial=-np.inf))
+        return X, U, bool(dynamics <= FEASIBILITY_TOL and excess <= FEASIBILITY_TOL)
 
     def certify(self, x_or_obs, u_uncertified, filter_params, filter_state):
         obs = np.asarray(x_or_obs, dtype=np.float64)
-        u_l = np.asarray(u_uncertified, dtype=np.float64).reshape(-1)
-        if obs.ndim != 1 or obs.shape[0] < self.nx or u_l.shape != (self.nu,):
+        u_unc = np.asarray(u_uncertified, dtype=np.float64).reshape(-1)
+        if obs.ndim != 1 or obs.shape[0] < self.nx or u_unc.shape != (self.nu,):
             raise ValueError(
                 f"nonlinear_mpsc: built for {self.system} (state of {self.nx} entries, input of {self.nu}); got an "
-                f"observation of shape {obs.shape} and an input of shape {u_l.shape} (one copy)"
+                f"observation of shape {obs.shape} and an input of shape {u_unc.shape} (one copy)"
             )
+        u_l = np.clip(u_unc, self.u_low, self.u_high)
         x = obs[: self.nx]
         H = self.horizon
         x_guess = u_guess = None
@@ -207,6 +268,7 @@ class NonlinearMPSC:
             x_guess[0] = x
             u_guess = np.concatenate([filter_state["u_plan"][1:], filter_state["u_plan"][-1:]])
         X, U, success = self.solve(x, u_l, x_guess, u_guess)
+        applied = CERTIFIED
         if success:
             u = U[0]
             state = {"x_plan": X, "u_plan": U, "kinf": 0}
@@ -214,11 +276,14 @@ class NonlinearMPSC:
             kinf = min(filter_state["kinf"] + 1, H)
             if kinf < H and filter_state["x_plan"] is not None:
                 u = filter_state["u_plan"][kinf] - self.K @ (x - filter_state["x_plan"][kinf])
+                applied = BACKUP_PLAN
             else:
                 u = self.u_eq - self.K @ (x - self.x_goal)
+                applied = BACKUP_CONTROLLER
             state = {**filter_state, "kinf": kinf}
         u = np.clip(u, self.u_low, self.u_high)
-        return u, state, FilterInfo(feasible=success, slack=0.0, correction=u - u_l)
+        correction = applied_correction(u, u_unc, self.u_low, self.u_high, np)
+        return u, state, FilterInfo(feasible=success, slack=0.0, correction=correction, applied=applied)
 
 
 def make_nonlinear_mpsc(env, prior_params, options=None, plant_params=None) -> NonlinearMPSC:

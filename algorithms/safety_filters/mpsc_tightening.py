@@ -29,7 +29,7 @@ import numpy as np
 SDP_SOLVERS = ("clarabel", "scs")
 
 
-def sample_transitions(env, plant_params, count: int, seed: int, half_width=None):
+def sample_transitions(env, plant_params, count: int, seed: int, half_width=None, num_plants: int = 1):
     """``count`` one-step transitions of the plant ``plant_params`` from random states and inputs.
 
     The step is the plant's CasADi mirror with the env's own integrator and substeps
@@ -39,9 +39,12 @@ def sample_transitions(env, plant_params, count: int, seed: int, half_width=None
 
     Args:
         env: the environment. plant_params: unbatched ``EnvParams`` of the plant (usually ``env.default_params``).
-        count: number of samples. seed: seed of numpy's generator.
+        count: number of samples. seed: seed of numpy's generator (and of the plants' draws).
         half_width: ``None`` (states uniform in the env's initial-state box ``init_state`` low/high) or (nx,)
             half-widths of a box around the plant's goal the states are drawn from uniformly.
+        num_plants: plants whose physics ``env.reset`` draws from the env's physics randomisation (an equal share
+            of the samples each), so the model error covers the plants episodes meet; 1 (or an env without
+            physics randomisation): ``plant_params`` itself.
 
     Returns:
         ``(x (count, nx), u (count, nu), x_next (count, nx))`` numpy float64; ``u`` uniform in the plant's actuator
@@ -61,8 +64,16 @@ def sample_transitions(env, plant_params, count: int, seed: int, half_width=None
         np.asarray(b, dtype=np.float64).reshape(env.nu) for b in env.system.input_bounds(plant_params.physics)
     )
     u = rng.uniform(u_low, u_high, (count, env.nu))
-    fd = env.symbolic_model(plant_params).fd
-    x_next = np.asarray(fd.map(count)(x.T, u.T), dtype=np.float64).T
+    plants = [plant_params]
+    if num_plants > 1 and env.physics_randomization_specs:
+        import jax
+
+        keys = jax.random.split(jax.random.key(seed), num_plants)
+        plants = [plant_params.replace(physics=env.reset(key, plant_params)[1].physics) for key in keys]
+    x_next = np.empty_like(x)
+    for share, plant in zip(np.array_split(np.arange(count), len(plants)), plants, strict=True):
+        fd = env.symbolic_model(plant).fd
+        x_next[share] = np.asarray(fd.map(share.size)(x[share].T, u[share].T), dtype=np.float64).T
     return x, u, x_next
 
 
@@ -138,6 +149,32 @@ def error_box(w, quantile: float = 1.0):
     return mean, np.quantile(np.abs(w - mean), quantile, axis=0)
 
 
+# The quantiles ``error_quantile: null`` tries, largest first: the first whose tube leaves room (``tube_room``).
+# The whole sample bound (1.0) where the error is small next to the constraint (a quadrotor's ceiling); a
+# smaller share where the largest errors of the sampled box (full thrust on a plant 10 % lighter) would tighten
+# a narrow constraint (the cart within +-0.1 m) away.
+AUTO_QUANTILES = (1.0, 0.9, 0.75, 0.5)
+
+
+def error_quantiles(value) -> tuple[float, ...]:
+    """The quantiles to try for the option ``error_quantile``: ``(value,)``, or ``AUTO_QUANTILES`` for ``None``."""
+    return AUTO_QUANTILES if value is None else (float(value),)
+
+
+def tube_room(rows, margins, x_goal, u_eq) -> str | None:
+    """``None`` when the goal and its equilibrium input hold every tightened row at every stage
+    (``Ax x_goal + Au u_eq <= b - margin_j``), so a plan that rests at the goal exists; else the reason."""
+    excess = rows.Ax @ x_goal + rows.Au @ u_eq - (rows.b[None, :] - margins)
+    if excess.max() <= 0:
+        return None
+    j, r = np.unravel_index(int(np.argmax(excess)), excess.shape)
+    return (
+        f"the tightening of row {r} ({rows.Ax[r].round(4).tolist()} x + {rows.Au[r].round(4).tolist()} u <= "
+        f"{rows.b[r]:.4g}) at stage {j} is {margins[j, r]:.3g}, which leaves the goal and its equilibrium input "
+        "outside"
+    )
+
+
 def reachable_tightening(Ax, Au, K, A_cl, w_bar, horizon: int) -> np.ndarray:
     """(horizon, m) per-stage margins of the rows for the linearised tube with errors in the box ``|w| <= w_bar``
     (see the module docstring); stage ``j`` is the row of the state ``x_{j+1}`` and the input ``u_j``."""
@@ -157,7 +194,10 @@ def reachable_tightening(Ax, Au, K, A_cl, w_bar, horizon: int) -> np.ndarray:
 
 
 __all__ = [
+    "AUTO_QUANTILES",
     "SDP_SOLVERS",
+    "error_quantiles",
+    "tube_room",
     "ellipsoid_tightening",
     "error_box",
     "reachable_tightening",
