@@ -1,13 +1,16 @@
 """Controllers and learners for ``scg_jax`` environments, all behind the protocol in ``scg_algorithms.base``.
 
-``make_controller(name, env, prior_params, options)`` builds any registered controller by name; the modules are
-imported on first use, so importing this package stays cheap.
+``make_controller(name, env, prior_params, options)`` builds any registered controller by name;
+``train_run(algo, config, out_dir, ...)`` trains any learner of ``LEARNERS`` (``scg_algorithms.learners``) into a
+folder. The modules are imported on first use, so importing this package stays cheap.
 """
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Mapping
+
+from scg_algorithms.learners import LEARNERS
+from scg_algorithms.registry import lookup
 
 # name -> "module:factory"; every factory is ``factory(env, prior_params, options=None) -> Controller``.
 CONTROLLERS = {
@@ -23,12 +26,21 @@ CONTROLLERS = {
 
 def controller_factory(name: str):
     """The factory registered under ``name``; ``ValueError`` naming the allowed names otherwise."""
-    if name not in CONTROLLERS:
-        raise ValueError(f"controller: unknown name {name!r}; allowed values are {', '.join(CONTROLLERS)}")
-    module, _, attribute = CONTROLLERS[name].partition(":")
-    return getattr(importlib.import_module(module), attribute)
+    return lookup(CONTROLLERS, name, "controller")
 
 
 def make_controller(name: str, env, prior_params, options: Mapping | None = None):
     """Build the controller ``name`` for ``env`` from the prior model ``prior_params`` and its ``options``."""
     return controller_factory(name)(env, prior_params, options)
+
+
+def __getattr__(name: str):
+    """``train_run`` and ``TrainResult`` (``scg_algorithms.runs``), imported when first asked for."""
+    if name in ("train_run", "TrainResult"):
+        from scg_algorithms import runs
+
+        return getattr(runs, name)
+    raise AttributeError(f"module 'scg_algorithms' has no attribute {name!r}")
+
+
+__all__ = ["CONTROLLERS", "LEARNERS", "TrainResult", "controller_factory", "make_controller", "train_run"]

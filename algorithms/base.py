@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import numbers
+import sys
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, ClassVar, NamedTuple, Protocol, runtime_checkable
 
@@ -92,39 +93,94 @@ def state_from_obs(env, obs):
 
 
 # --------------------------------------------------------------------------------------------- options
-def option(default, doc: str = "", choices: Sequence[str] | None = None):
-    """A field of a controller's ``Options`` dataclass: its default, a one-line doc and the allowed strings."""
-    return dataclasses.field(default=default, metadata={"doc": doc, "choices": tuple(choices) if choices else None})
+def _positive(value, path: str):
+    V.positive(value, path)
+    return value
 
 
-def _check_value(path: str, value, default, choices):
-    """``value`` converted to the type of ``default`` through ``scg_jax.validation``, or a ``FieldError`` naming
-    ``path``."""
+def _non_negative(value, path: str):
+    V.non_negative(value, path)
+    return value
+
+
+def _unit_interval(value, path: str):
+    if not 0.0 <= value <= 1.0:
+        raise V.FieldError(path, f"must be in [0, 1], got {value!r}")
+    return value
+
+
+def _layer_sizes(value, path: str) -> tuple[int, ...]:
+    if value is None or len(value) == 0:
+        raise V.FieldError(path, "expected a list of layer sizes, e.g. [64, 64]")
+    if any(v < 1 for v in value):
+        raise V.FieldError(path, f"layer sizes must be positive integers, got {list(value)}")
+    return tuple(value)
+
+
+# What ``option(check=...)`` may ask of a value, each ``check(value, path) -> value`` raising ``FieldError``.
+CHECKS = {
+    "positive": _positive,  # a number > 0
+    "non_negative": _non_negative,  # a number >= 0
+    "unit_interval": _unit_interval,  # a number in [0, 1]
+    "layer_sizes": _layer_sizes,  # hidden layer sizes: a non-empty tuple of positive ints
+}
+
+
+def option(default, doc: str = "", choices: Sequence[str] | None = None, check: str | None = None):
+    """A field of an options dataclass (a controller's or filter's ``Options``, a learner's ``Config``).
+
+    Args:
+        default: the value when the field is not given; its type is the field's (bool, int, float, str, a tuple
+            of ints such as hidden layer sizes, a tuple of floats or ``None`` for a vector such as a diagonal
+            weight). doc: one line for listings. choices: the allowed strings. check: a key of ``CHECKS``
+            (``positive``, ``non_negative``, ``unit_interval``, ``layer_sizes``) that every value must pass.
+    """
+    if check is not None and check not in CHECKS:
+        raise ValueError(f"option check: unknown value {check!r}; allowed values are {', '.join(CHECKS)}")
+    metadata = {"doc": doc, "choices": tuple(choices) if choices else None, "check": check}
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+def _integers(values: tuple, path: str) -> tuple[int, ...]:
+    if any(not float(v).is_integer() for v in values):
+        raise V.FieldError(path, f"expected integers, got {list(values)}")
+    return tuple(int(v) for v in values)
+
+
+def _check_value(path: str, value, field: dataclasses.Field):
+    """``value`` converted to the type of ``field``'s default through ``scg_jax.validation`` and passed through
+    its ``check``, or a ``FieldError`` naming ``path``."""
+    default, choices, check = field.default, field.metadata.get("choices"), field.metadata.get("check")
     if choices is not None:
-        return V.name(value, path, choices)
-    if isinstance(default, bool):
-        return V.boolean(value, path)
-    if isinstance(default, numbers.Integral):
-        return V.integer(value, path)
-    if isinstance(default, numbers.Real):
-        return V.number(value, path)
-    if isinstance(default, str):
-        return V.string(value, path)
-    if default is None or isinstance(default, tuple):
-        return None if value is None else tuple(V.vector(value, path, broadcast=True).reshape(-1).tolist())
+        value = V.name(value, path, choices)
+    elif isinstance(default, bool):
+        value = V.boolean(value, path)
+    elif isinstance(default, numbers.Integral):
+        value = V.integer(value, path)
+    elif isinstance(default, numbers.Real):
+        value = V.number(value, path)
+    elif isinstance(default, str):
+        value = V.string(value, path)
+    elif default is None or isinstance(default, tuple):
+        if value is not None:
+            value = tuple(V.vector(value, path, broadcast=True).reshape(-1).tolist())
+            if default and all(isinstance(v, numbers.Integral) for v in default):
+                value = _integers(value, path)
+    if check is not None and value is not None:
+        value = CHECKS[check](value, path)
     return value
 
 
 def parse_options(cls, options: Mapping | None, path: str):
-    """Build the frozen ``Options`` dataclass ``cls`` from a mapping, checking every key and value.
+    """Build the frozen options dataclass ``cls`` from a mapping, checking every key and value.
 
-    Fields are declared with ``option``; a field's default fixes its type (bool, int, float, str, or a tuple of
-    floats / ``None`` for vectors such as a diagonal weight). A class may define ``_check(self, path)`` for
-    checks across fields.
+    Fields are declared with ``option``: a field's default fixes its type, its ``choices`` and ``check`` what it
+    may hold. A class may define ``_check(self, path)`` for checks across fields. An instance built directly is
+    checked the same way (its fields are parsed again), so no unchecked options reach a method.
 
     Args:
         cls: the dataclass. options: a mapping of field names to values, ``None`` for all defaults, or an
-            instance of ``cls`` (returned unchanged). path: prefix of error messages, e.g.
+            instance of ``cls`` (or of a subclass, kept). path: prefix of error messages, e.g.
             ``"controllers.nonlinear_mpc"``.
 
     Raises:
@@ -133,20 +189,31 @@ def parse_options(cls, options: Mapping | None, path: str):
     if options is None:
         options = {}
     if isinstance(options, cls):
-        return options
+        cls, options = type(options), {f.name: getattr(options, f.name) for f in dataclasses.fields(options)}
     if not isinstance(options, Mapping):
         raise V.FieldError(path, f"expected a mapping of options, got {V.show(options)}")
     fields = {field.name: field for field in dataclasses.fields(cls)}
     V.check_keys(options, path, fields)
-    kwargs = {}
-    for key, value in options.items():
-        field = fields[key]
-        kwargs[key] = _check_value(f"{path}.{key}", value, field.default, field.metadata.get("choices"))
-    result = cls(**kwargs)
+    result = cls(**{key: _check_value(f"{path}.{key}", value, fields[key]) for key, value in options.items()})
     check = getattr(result, "_check", None)
     if check is not None:
         check(path)
     return result
+
+
+def with_defaults(cls, doc: str, **defaults):
+    """A subclass of the options dataclass ``cls`` that differs from it only in the ``defaults`` given (same
+    fields, docs, checks and ``_check``), documented by ``doc``: one declaration serving methods that differ by
+    their defaults (RARL's options are RAP's with one adversary and the alternating schedule)."""
+    fields = {field.name: field for field in dataclasses.fields(cls)}
+    V.check_keys(defaults, f"{cls.__name__} defaults", fields)
+    changed = [
+        (name, fields[name].type, dataclasses.field(default=value, metadata=fields[name].metadata))
+        for name, value in defaults.items()
+    ]
+    # The caller's module, as collections.namedtuple does: where the class is defined for repr and pickling.
+    namespace = {"__doc__": doc, "__module__": sys._getframe(1).f_globals.get("__name__", __name__)}
+    return dataclasses.make_dataclass(cls.__name__, changed, bases=(cls,), namespace=namespace, frozen=True)
 
 
 def positive(path: str, value) -> None:
@@ -172,14 +239,3 @@ def check_fields(
     for name in closed_unit:
         if not 0.0 <= getattr(config, name) <= 1.0:
             raise ValueError(f"{path}.{name}: must be in [0, 1], got {getattr(config, name)!r}")
-
-
-def weight_diagonal(path: str, value, default, n: int):
-    """A diagonal weight option: ``value`` (n numbers, or ``None`` for ``default``) as a tuple of n floats >= 0."""
-    if value is None:
-        return tuple(float(v) for v in default)
-    if len(value) != n:
-        raise ValueError(f"{path}: expected {n} values, got {len(value)}")
-    if min(value) < 0:
-        raise ValueError(f"{path}: weights must be >= 0, got {list(value)}")
-    return tuple(value)

@@ -28,7 +28,9 @@ import dataclasses
 
 import numpy as np
 
-from scg_algorithms.base import option, weight_diagonal
+from scg_algorithms.base import option
+from scg_algorithms.riccati import discrete_lqr_gain
+from scg_jax.validation import weight_matrix
 
 LINEARIZE_ABOUT = ("auto", "goal", "reference")
 TERMINAL_WEIGHTS = ("dare", "stage")
@@ -61,9 +63,9 @@ def cost_weights(env, prior_params, q_diag, r_diag, path: str, positive_definite
     Q = np.asarray(prior_params.Q, dtype=np.float64).reshape(env.nx, env.nx)
     R = np.asarray(prior_params.R, dtype=np.float64).reshape(env.nu, env.nu)
     if q_diag is not None:
-        Q = np.diag(weight_diagonal(f"{path}.q_diag", q_diag, (), env.nx))
+        Q = weight_matrix(q_diag, f"{path}.q_diag", env.nx, diagonal_only=True)
     if r_diag is not None:
-        R = np.diag(weight_diagonal(f"{path}.r_diag", r_diag, (), env.nu))
+        R = weight_matrix(r_diag, f"{path}.r_diag", env.nu, diagonal_only=True)
     if positive_definite_r and np.linalg.eigvalsh(0.5 * (R + R.T)).min() <= 0:
         raise ValueError(
             f"{path}.r_diag: the input weight must be positive definite (the prior's R when r_diag is not set), "
@@ -171,8 +173,6 @@ def goal_lqr(
     Raises:
         ValueError: ``"<path>.<field>: ... no stabilising solution ..."`` when the Riccati equation has none.
     """
-    from scg_algorithms.lqr import discrete_lqr_gain  # here, not at the top: scg_algorithms.lqr builds on this module
-
     goal = np.asarray(prior_params.goal, dtype=np.float64).reshape(env.nx)
     lin = model.linearize(goal, equilibrium_input(env, prior_params))
     try:

@@ -23,7 +23,6 @@ Compute time per step (``compute_time_per_step_s``) is the controller's time per
 from __future__ import annotations
 
 import time
-import weakref
 from collections.abc import Mapping
 from typing import Any, NamedTuple
 
@@ -32,8 +31,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from scg_algorithms.base import Reference
+from scg_algorithms.progress import Task, as_progress, running
 from scg_algorithms.safety_filters.base import check_system, filter_record, intervention_metrics, is_filtered
 from scg_jax import metrics as metrics_lib
+from scg_jax.caching import CompileCache
 
 # The keys of the JSON the CLI writes, in the paper's order: summary name -> metrics.summarize name.
 SUMMARY_KEYS = {
@@ -155,25 +156,26 @@ def _replay_fn(env, controller):
 
 
 # Compiled closed loops and replays, so evaluating the same env and controller again (new key, new params of the
-# same shapes) does not compile again. Keyed weakly by the controller, so a controller's executables go with it;
-# envs compare by identity (the entry keeps its env alive, so the id cannot be reused while cached).
-_COMPILED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+# same shapes) does not compile again; an entry goes with its env or controller (scg_jax.caching's policy).
+_COMPILED = CompileCache(maxsize=32)
 
 
 def _compiled(kind: str, env, controller, axis, args) -> tuple[Any, float]:
     """``(executable, compile seconds)``; 0 s when it was compiled before for the same shapes."""
     # The layout is part of the executable: a sharded evaluation compiles apart from the single-device one.
     signature = jax.tree.map(lambda a: (jnp.shape(a), jnp.result_type(a), str(getattr(a, "sharding", None))), args)
-    cache_key = (kind, id(env), axis, str(jax.tree.structure(args)), str(signature))
-    entries = _COMPILED.setdefault(controller, {})
-    entry = entries.get(cache_key)
-    if entry is not None and entry[0] is env:
-        return entry[1], 0.0
-    build = _closed_loop_fn if kind == "loop" else _replay_fn
-    start = time.perf_counter()
-    executable = jax.jit(jax.vmap(build(env, controller), in_axes=(0, 0, axis))).lower(*args).compile()
-    entries[cache_key] = (env, executable)
-    return executable, time.perf_counter() - start
+    compile_s = 0.0
+
+    def build():
+        nonlocal compile_s
+        start = time.perf_counter()
+        loop_or_replay = _closed_loop_fn if kind == "loop" else _replay_fn
+        executable = jax.jit(jax.vmap(loop_or_replay(env, controller), in_axes=(0, 0, axis))).lower(*args).compile()
+        compile_s = time.perf_counter() - start
+        return executable
+
+    key = (kind, axis, str(jax.tree.structure(args)), str(signature))
+    return _COMPILED.get(key, build, owners=(env, controller)), compile_s
 
 
 def _evaluate_jax(env, params, controller, key, num_episodes, batched_params, measure_time, mesh=None):
@@ -215,15 +217,15 @@ def _evaluate_jax(env, params, controller, key, num_episodes, batched_params, me
 
 
 # --------------------------------------------------------------------------------------------- host path
-_HOST_FUNCTIONS: dict = {}
+_HOST_FUNCTIONS = CompileCache(maxsize=16)
 
 
 def _host_functions(env, batched_params: bool):
     """Jitted, vmapped ``reset``, ``step`` (from the physical input) and ``reference`` of ``env``, made once."""
-    cache_key = (id(env), batched_params)
-    entry = _HOST_FUNCTIONS.get(cache_key)
-    if entry is not None and entry[0] is env:
-        return entry[1]
+    return _HOST_FUNCTIONS.get(batched_params, lambda: _make_host_functions(env, batched_params), owners=(env,))
+
+
+def _make_host_functions(env, batched_params: bool):
     axis = _params_axis(batched_params)
 
     def step_one(state, u, params):
@@ -231,13 +233,11 @@ def _host_functions(env, batched_params: bool):
         info = {name: out.info[name] for name in _INFO_KEYS}
         return out.obs, out.state, out.reward, out.cost, out.terminated, out.truncated, info
 
-    functions = (
+    return (
         jax.jit(jax.vmap(env.reset, in_axes=(0, axis))),
         jax.jit(jax.vmap(step_one, in_axes=(0, 0, axis))),
         jax.jit(jax.vmap(env.reference, in_axes=(axis,)) if batched_params else env.reference),
     )
-    _HOST_FUNCTIONS[cache_key] = (env, functions)
-    return functions
 
 
 def _evaluate_host(env, params, controller, key, num_episodes, batched_params, progress):
@@ -266,16 +266,7 @@ def _evaluate_host(env, params, controller, key, num_episodes, batched_params, p
     u_last = np.zeros((num_episodes, env.nu))
     act_times: list[float] = []
 
-    bar = None
-    if progress:
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-        bar = Progress(
-            TextColumn(f"{controller.name}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(), transient=True
-        )
-        bar.start()
-        task = bar.add_task("steps", total=num_steps)
-    try:
+    with running(progress, Task(f"evaluating {controller.name} on {num_episodes} episodes", num_steps, 0, "step")):
         for k in range(num_steps):
             obs_np = np.asarray(obs, dtype=np.float64)
             x_np = np.asarray(state.x)
@@ -308,13 +299,9 @@ def _evaluate_host(env, params, controller, key, num_episodes, batched_params, p
                 records[name].append(np.asarray(info[name]))
             obs = obs_next
             done |= np.asarray(terminated) | np.asarray(truncated)
-            if bar is not None:
-                bar.update(task, advance=1)
+            progress.update(k + 1, {"episodes_done": int(done.sum())})
             if done.all():
                 break
-    finally:
-        if bar is not None:
-            bar.stop()
     run_s = time.perf_counter() - start
 
     trajectory = {name: np.stack(values) for name, values in records.items()}
@@ -339,7 +326,7 @@ def evaluate(
     *,
     batched_params: bool = False,
     measure_time: bool = True,
-    progress: bool = False,
+    progress=None,
     mesh=None,
 ) -> Evaluation:
     """Run ``num_episodes`` episodes of ``env`` under ``controller`` and score them.
@@ -350,7 +337,9 @@ def evaluate(
         num_episodes: number of episodes, run as parallel copies (one episode per copy).
         batched_params: ``params`` has a leading axis of size ``num_episodes`` (a sweep).
         measure_time: time JAX controllers alone (one extra replay); host controllers are always timed.
-        progress: show a progress bar (host controllers, whose loop runs in Python).
+        progress: a ``scg_algorithms.progress.Progress``: the task ``"evaluating NAME on N episodes"``, counting
+            control steps for a host controller (whose loop runs in Python), uncounted for a JAX one (compiling and
+            one jitted call). None: silent.
         mesh: ``scg_jax.sharding.make_mesh(devices)``: JAX controllers' copies are laid out over its devices and
             processes (``num_episodes`` must divide evenly; every process gets all copies' results); host
             controllers ignore it. ``None``: one device.
@@ -359,12 +348,14 @@ def evaluate(
         ``Evaluation`` (see its docstring for the definitions).
     """
     num_episodes = _check(env, params, controller, num_episodes)
+    progress = as_progress(progress)
     if is_filtered(controller):
         check_system(controller.safety_filter, env)
     if controller.is_jax:
-        trajectory, timing, per_step, per_batch_step = _evaluate_jax(
-            env, params, controller, key, num_episodes, batched_params, measure_time, mesh
-        )
+        with running(progress, Task(f"evaluating {controller.name} on {num_episodes} episodes")):
+            trajectory, timing, per_step, per_batch_step = _evaluate_jax(
+                env, params, controller, key, num_episodes, batched_params, measure_time, mesh
+            )
     else:
         trajectory, timing, per_step, per_batch_step = _evaluate_host(
             env, params, controller, key, num_episodes, batched_params, progress

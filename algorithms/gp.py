@@ -26,6 +26,7 @@ inputs, each snapped to its nearest training input (distinct points, so they sta
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
 
@@ -305,6 +306,36 @@ SIGNAL_VAR_BOUNDS = (1e-4, 1e3)
 NOISE_VAR_BOUNDS = (1e-4, 1e1)
 
 
+def _clipped(log_hp: GPHyperparams) -> GPHyperparams:
+    """Hyperparameters from their logs, clipped to the bounds of the fit."""
+    bounds = (LENGTH_SCALE_BOUNDS, SIGNAL_VAR_BOUNDS, NOISE_VAR_BOUNDS)
+    values = (log_hp.length_scales, log_hp.signal_var, log_hp.noise_var)
+    return GPHyperparams(*(jnp.exp(jnp.clip(v, *np.log(b))) for v, b in zip(values, bounds, strict=True)))
+
+
+# Compiled once per data shape, kernel and iteration count: the data are arguments, so every GP-MPC round (new data,
+# same shapes) reuses the executable.
+@functools.partial(jax.jit, static_argnames=("kernel", "iterations"))
+def _fit_standardised(log_hp, x, y, kernel: str, iterations: int):
+    """``(fitted hyperparameters, nll at the start, nll at the end)``: ``iterations`` L-BFGS steps from ``log_hp``
+    (logs) on standardised data ``x`` (n, d), ``y`` (n, m); float64 under ``jax.enable_x64``."""
+
+    def loss(log_hp):
+        return negative_log_marginal_likelihood(x, y, _clipped(log_hp), kernel)
+
+    solver = optax.lbfgs()
+    value_and_grad = optax.value_and_grad_from_state(loss)
+
+    def step(carry, _):
+        params, state = carry
+        value, grad = value_and_grad(params, state=state)
+        updates, state = solver.update(grad, state, params, value=value, grad=grad, value_fn=loss)
+        return (optax.apply_updates(params, updates), state), value
+
+    (final, _), _ = jax.lax.scan(step, (log_hp, solver.init(log_hp)), None, iterations)
+    return _clipped(final), loss(log_hp), loss(final)
+
+
 def fit_hyperparams(
     inputs,
     targets,
@@ -337,33 +368,11 @@ def fit_hyperparams(
             np.asarray(init.length_scales) / x_scale, np.asarray(init.signal_var) / y_scale**2,
             np.asarray(init.noise_var) / y_scale**2,
         )  # fmt: skip
-    bounds = (LENGTH_SCALE_BOUNDS, SIGNAL_VAR_BOUNDS, NOISE_VAR_BOUNDS)
     with jax.enable_x64(True):
-        xj, yj = jnp.asarray(x / x_scale), jnp.asarray(y / y_scale)
         log0 = jax.tree.map(lambda v: jnp.log(jnp.asarray(v, jnp.float64)), start)
-
-        def unpack(log_hp):
-            values = (log_hp.length_scales, log_hp.signal_var, log_hp.noise_var)
-            return GPHyperparams(*(jnp.exp(jnp.clip(v, *np.log(b))) for v, b in zip(values, bounds, strict=True)))
-
-        def loss(log_hp):
-            return negative_log_marginal_likelihood(xj, yj, unpack(log_hp), kernel)
-
-        solver = optax.lbfgs()
-        value_and_grad = optax.value_and_grad_from_state(loss)
-
-        @jax.jit
-        def run(log_hp):
-            def step(carry, _):
-                params, state = carry
-                value, grad = value_and_grad(params, state=state)
-                updates, state = solver.update(grad, state, params, value=value, grad=grad, value_fn=loss)
-                return (optax.apply_updates(params, updates), state), value
-
-            (final, _), _ = jax.lax.scan(step, (log_hp, solver.init(log_hp)), None, iterations)
-            return unpack(final), loss(log_hp), loss(final)
-
-        fitted, nll0, nll1 = run(log0)
+        fitted, nll0, nll1 = _fit_standardised(
+            log0, jnp.asarray(x / x_scale), jnp.asarray(y / y_scale), kernel, iterations
+        )
         fitted = jax.tree.map(np.asarray, fitted)
     if not np.isfinite(float(nll1)) or float(nll1) > float(nll0):  # never return worse than the start
         fitted, nll1 = start, nll0

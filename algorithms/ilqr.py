@@ -269,6 +269,19 @@ def _rollout(step_fn, x0, x_bar, u_bar, d, K, alpha, x_ref, u_ref, Q, R, Q_termi
     return xs, us, jnp.where(finite, cost, jnp.inf)
 
 
+def _next_regularization(mu, accepted, unresolved, settings: ILQRSettings):
+    """Levenberg-Marquardt ``mu`` after an iteration: divided by the factor after an accepted step (0 once below the
+    minimum), kept after a rejected step too small for the cost's resolution, else multiplied (at least the
+    minimum)."""
+    factor, mu_min = settings.regularization_factor, settings.regularization_min
+    lowered = mu / factor
+    return jnp.where(
+        accepted,
+        jnp.where(lowered < mu_min, 0.0, lowered),
+        jnp.where(unresolved, mu, jnp.maximum(mu * factor, mu_min)),
+    )
+
+
 def ilqr_solve(
     step_fn,
     x0,
@@ -317,7 +330,7 @@ def ilqr_solve(
     horizon, nu = u_init.shape
     nx = x0.shape[0]
     mu0 = cast(settings.regularization_init if regularization is None else regularization)
-    factor, mu_min, mu_max = settings.regularization_factor, settings.regularization_min, settings.regularization_max
+    mu_min, mu_max = settings.regularization_min, settings.regularization_max
     tol = settings.tolerance
     alphas = settings.line_search_factor ** jnp.arange(settings.line_search_steps, dtype=dtype)
 
@@ -385,12 +398,7 @@ def ilqr_solve(
         unresolved = (
             bwd.ok & ~accepted & (s["mu"] <= mu_min) & (-(bwd.dV1 + bwd.dV2) <= resolution * jnp.abs(s["cost"]))
         )
-        lowered = s["mu"] / factor
-        mu = jnp.where(
-            accepted,
-            jnp.where(lowered < mu_min, 0.0, lowered),
-            jnp.where(unresolved, s["mu"], jnp.maximum(s["mu"] * factor, mu_min)),
-        )
+        mu = _next_regularization(s["mu"], accepted, unresolved, settings)
         A, B = lax.cond(accepted, lambda: jacobians(x[:-1], u), lambda: (s["A"], s["B"]))
         new_bwd = backward(A, B, x, u, mu)
         small_step = accepted & (s["cost"] - cost <= tol * jnp.abs(s["cost"]))

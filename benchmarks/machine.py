@@ -3,6 +3,22 @@
 from __future__ import annotations
 
 import os
+import time
+
+
+def median_seconds(run, repeats: int) -> float:
+    """Median wall time (s) of ``repeats`` calls of ``run()``, each waited for (``jax.block_until_ready``), after
+    one untimed call (compilation, warm caches)."""
+    import jax
+    import numpy as np
+
+    jax.block_until_ready(run())
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(run())
+        times.append(time.perf_counter() - start)
+    return float(np.median(times))
 
 
 def cpu_count() -> int:

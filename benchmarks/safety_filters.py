@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from machine import print_machine, run_record, write_markdown_table  # noqa: E402
+from machine import median_seconds, print_machine, run_record, write_markdown_table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_JSON = ROOT / "benchmarks" / "results" / "safety_filters.json"
@@ -117,13 +117,7 @@ def time_case(case: Case, batches, repeats: int) -> dict:
     certify = jax.jit(jax.vmap(lambda x, u: flt.certify(x, u, flt.params, ())))
     for batch in batches:
         xs, us = (jnp.asarray(a) for a in _samples(env, batch))
-        jax.block_until_ready(certify(xs, us))
-        times = []
-        for _ in range(repeats):
-            start = time.perf_counter()
-            jax.block_until_ready(certify(xs, us))
-            times.append(time.perf_counter() - start)
-        row[f"calls_per_s_{batch}"] = batch / float(np.median(times))
+        row[f"calls_per_s_{batch}"] = batch / median_seconds(lambda xs=xs, us=us: certify(xs, us), repeats)
     return row
 
 

@@ -33,9 +33,9 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from machine import (  # benchmarks/machine.py, beside this script
     load_average,
+    median_seconds,
     print_machine,
     run_record,
     write_markdown_table,
@@ -112,14 +112,7 @@ def throughput(env, params, cfg, algo: str, batch: int, iterations: int, repeats
     start = time.perf_counter()
     compiled = run.lower(state, params).compile()
     compile_s = time.perf_counter() - start
-    jax.block_until_ready(compiled(state, params))
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(compiled(state, params))
-        times.append(time.perf_counter() - start)
-    train_s = float(np.median(times))
-    train_rate = steps_per_iteration * iterations / train_s
+    train_rate = steps_per_iteration * iterations / median_seconds(lambda: compiled(state, params), repeats)
 
     # The raw env for the same number of steps: constant (zero normalised) action, auto-reset.
     num_steps = max(1, steps_per_iteration * iterations // batch)
@@ -127,13 +120,7 @@ def throughput(env, params, cfg, algo: str, batch: int, iterations: int, repeats
     rollout = make_rollout(
         env, lambda obs, s, p, k: env.input_to_action(policy_action_to_input(env, zero, p.physics), p), batch, num_steps
     )
-    jax.block_until_ready(rollout(jax.random.key(1), params))
-    env_times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(rollout(jax.random.key(1), params))
-        env_times.append(time.perf_counter() - start)
-    env_rate = batch * num_steps / float(np.median(env_times))
+    env_rate = batch * num_steps / median_seconds(lambda: rollout(jax.random.key(1), params), repeats)
     return {
         "algo": algo,
         "batch": batch,
@@ -205,6 +192,16 @@ def ours_time_to_threshold(env, params, cfg, threshold, eval_key, episodes, max_
     }
 
 
+# brax_ppo.train's arguments that are fields of our PPO config: brax's name -> ours.
+_BRAX_PPO = {
+    "num_timesteps": "total_env_steps", "num_envs": "num_envs", "unroll_length": "rollout_length",
+    "num_updates_per_batch": "num_epochs", "learning_rate": "learning_rate", "entropy_cost": "ent_coef",
+    "discounting": "gamma", "gae_lambda": "gae_lambda", "clipping_epsilon": "clip_eps",
+    "max_grad_norm": "max_grad_norm", "normalize_observations": "normalize_observations",
+    "reward_scaling": "reward_scale",
+}  # fmt: skip
+
+
 def brax_time_to_threshold(env, params, cfg, threshold, eval_key, episodes, max_s, num_evals, console) -> dict:
     """brax PPO with the same env and matched hyperparameters, evaluated in its ``policy_params_fn``."""
     from brax.training.agents.ppo import networks as ppo_networks
@@ -254,29 +251,10 @@ def brax_time_to_threshold(env, params, cfg, threshold, eval_key, episodes, max_
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
         brax_ppo.train(
-            BraxEnv(env),
-            num_timesteps=config.total_env_steps,
-            episode_length=env.num_steps,
-            wrap_env_fn=wrap_for_training,
-            num_envs=config.num_envs,
-            batch_size=batch_size,
-            num_minibatches=num_minibatches,
-            unroll_length=config.rollout_length,
-            num_updates_per_batch=config.num_epochs,
-            learning_rate=config.learning_rate,
-            entropy_cost=config.ent_coef,
-            discounting=config.gamma,
-            gae_lambda=config.gae_lambda,
-            clipping_epsilon=config.clip_eps,
-            max_grad_norm=config.max_grad_norm,
-            normalize_observations=config.normalize_observations,
-            reward_scaling=config.reward_scale,
-            network_factory=network,
-            num_evals=num_evals,
-            num_eval_envs=16,
-            seed=0,
-            policy_params_fn=policy_params_fn,
-        )
+            BraxEnv(env), episode_length=env.num_steps, wrap_env_fn=wrap_for_training, batch_size=batch_size,
+            num_minibatches=num_minibatches, network_factory=network, num_evals=num_evals, num_eval_envs=16, seed=0,
+            policy_params_fn=policy_params_fn, **{brax: getattr(config, ours) for brax, ours in _BRAX_PPO.items()},
+        )  # fmt: skip
     total = time.perf_counter() - start - eval_time[0]
     if reached:
         return {"reached": True, **reached, "curve": curve}

@@ -19,6 +19,7 @@ from scg_cli.common import (
     positive_int,
     summary_table,
 )
+from scg_cli.progress import add_progress_argument, console_progress
 from scg_cli.scale import add_scale_arguments, check_batch, is_main_process, make_mesh, start_distributed
 from scg_jax.files import write_atomic, write_json
 
@@ -44,6 +45,7 @@ def _add_controller_arguments(parser: argparse.ArgumentParser) -> None:
     )
     run.add_argument("--episodes", type=positive_int, default=16, help="episodes, run in parallel (default: 16)")
     run.add_argument("--seed", type=int, default=0, help="PRNG seed (default: 0)")
+    add_progress_argument(run)
 
 
 def add_eval_parser(subparsers) -> argparse.ArgumentParser:
@@ -182,22 +184,13 @@ def _load_gp_mpc_run(path: Path, env, params, cfg, prior_scale: float):
 
 
 def _evaluate(controller, env, params, args, console, mesh=None):
-    """``evaluate`` with a spinner (JAX controllers: compile and run) or a progress bar (host controllers)."""
-    import contextlib
-
+    """``evaluate`` with its progress on the console (process 0 of a --distributed job only)."""
     import jax
 
     from scg_algorithms.evaluation import evaluate
 
-    waiting = (
-        console.status(f"compiling and running {controller.name} on {args.episodes} episodes")
-        if controller.is_jax
-        else contextlib.nullcontext()
-    )
-    with waiting:
-        return evaluate(
-            env, params, controller, jax.random.key(args.seed), args.episodes, progress=not controller.is_jax, mesh=mesh
-        )
+    progress = console_progress(console, args.progress_interval, is_main_process())
+    return evaluate(env, params, controller, jax.random.key(args.seed), args.episodes, progress=progress, mesh=mesh)
 
 
 def _evaluation_extra(env, cfg, args, controller) -> dict:

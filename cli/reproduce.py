@@ -6,12 +6,12 @@ import argparse
 from pathlib import Path
 
 from scg_cli.common import UsageError, check_output, positive_int
-
-PROFILES = ("tiny", "quick", "paper")
+from scg_cli.progress import add_progress_argument, console_progress
 
 
 def add_reproduce_parser(subparsers) -> argparse.ArgumentParser:
     from scg_experiments import RESULTS
+    from scg_experiments.common import PROFILES
 
     parser = subparsers.add_parser(
         "reproduce",
@@ -32,6 +32,7 @@ def add_reproduce_parser(subparsers) -> argparse.ArgumentParser:
     )
     parser.add_argument("--seeds", type=positive_int, default=None, help="seeds (default: 1, paper profile 3)")
     parser.add_argument("--out", type=Path, default=Path("results/reproduce"), metavar="DIR", help="output folder")
+    add_progress_argument(parser)
     return parser
 
 
@@ -43,8 +44,6 @@ def run_reproduce(args: argparse.Namespace, console) -> int:
         raise UsageError(f"argument NAME: unknown result {unknown[0]!r}; allowed values are {', '.join(RESULTS)}")
     check_output(args.out, "dir")
     seeds = args.seeds if args.seeds is not None else (3 if args.profile == "paper" else 1)
-    sections = reproduce(args.names, args.out, args.profile, seeds, console)
-    for section in sections:
-        console.print(f"{section.name}: {section.wall_s:.1f} s")
+    reproduce(args.names, args.out, args.profile, seeds, console_progress(console, args.progress_interval))
     console.print(f"wrote {args.out}/report.md")
     return 0

@@ -6,37 +6,34 @@ Each result is a module with ``NAME``, ``TITLE``, ``PROFILES`` and ``run(ctx) ->
 
 from __future__ import annotations
 
-import importlib
 import platform
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
+# name -> module, in the paper's order.
 RESULTS = {
-    "control_performance": "scg_experiments.control_performance",
-    "learning_efficiency": "scg_experiments.learning_efficiency",
-    "constraint_satisfaction": "scg_experiments.constraint_satisfaction",
-    "robustness": "scg_experiments.robustness",
-    "throughput": "scg_experiments.throughput",
+    name: f"scg_experiments.{name}"
+    for name in ("control_performance", "learning_efficiency", "constraint_satisfaction", "robustness", "throughput")
 }
 
 
 def result_module(name: str):
     """The module of the result ``name``; ``ValueError`` naming the allowed names otherwise."""
-    if name not in RESULTS:
-        raise ValueError(f"result: unknown name {name!r}; allowed values are {', '.join(RESULTS)}")
-    return importlib.import_module(RESULTS[name])
+    from scg_algorithms.registry import lookup
+
+    return lookup(RESULTS, name, "result")
 
 
-def reproduce(names: Sequence[str], out, profile: str = "quick", seeds: int = 1, console=None) -> list:
+def reproduce(names: Sequence[str], out, profile: str = "quick", seeds: int = 1, progress=None) -> list:
     """Run the results ``names`` (all when empty) with ``profile`` and seeds ``0..seeds-1`` into ``out``.
 
     Writes ``out/<name>/`` (data, PNG) per result, ``out/cache/`` (trained policies, GPs, curves; reused by a rerun)
-    and ``out/report.md`` (the sections of every result run so far in ``out``, whole or not at all). Returns the
-    ``Section``s of this run.
+    and ``out/report.md`` (the sections of every result run so far in ``out``, whole or not at all). Reports through
+    ``progress`` (a ``scg_algorithms.progress.Progress``; None: silent): a note per result as it starts and ends,
+    and what its training and steps report. Returns the ``Section``s of this run.
     """
-    from rich.console import Console
-
+    from scg_algorithms.progress import as_progress
     from scg_experiments import common
     from scg_jax.files import write_atomic
 
@@ -46,13 +43,13 @@ def reproduce(names: Sequence[str], out, profile: str = "quick", seeds: int = 1,
         raise ValueError(f"seeds: must be a positive integer, got {seeds!r}")
     names = list(names) or list(RESULTS)
     modules = [result_module(name) for name in names]  # every name checked before any work
-    console = console or Console()
+    progress = as_progress(progress)
     out = Path(out)
     sections = []
     for name, module in zip(names, modules, strict=True):
-        ctx = common.Context(out / name, out / "cache", profile, tuple(range(int(seeds))), console)
+        ctx = common.Context(out / name, out / "cache", profile, tuple(range(int(seeds))), progress)
         ctx.out.mkdir(parents=True, exist_ok=True)
-        console.rule(f"{module.TITLE} [{profile}]")
+        progress.note(f"== {module.TITLE} [{profile}] ==")
         start = time.perf_counter()
         try:
             section = module.run(ctx)
@@ -61,12 +58,12 @@ def reproduce(names: Sequence[str], out, profile: str = "quick", seeds: int = 1,
             text = common.failure_text(error)
             section.claims = [common.Claim(f"the result {name} ran", common.NOT_MEASURED, f"not measured: {text}")]
             section.notes.append(f"{name} stopped with {text}; nothing of it was measured")
-            console.print(f"{name} failed: {text}", markup=False, highlight=False)
+            progress.note(f"{name} failed: {text}")
         section.wall_s = time.perf_counter() - start
         common.write_data(ctx.out / "section.json", {"markdown": section.markdown(), "wall_s": section.wall_s,
                                                      "claims": [c.__dict__ for c in section.claims]})  # fmt: skip
         write_atomic(ctx.out / "section.md", lambda f, s=section: f.write(s.markdown().encode()))
-        console.print(f"{name}: {section.wall_s:.1f} s; " + ", ".join(f"{c.verdict}" for c in section.claims))
+        progress.note(f"{name}: {section.wall_s:.1f} s; " + ", ".join(f"{c.verdict}" for c in section.claims))
         sections.append(section)
         _write_report(out, profile, seeds)
     return sections

@@ -23,13 +23,14 @@ import math
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import scg_jax
+from scg_algorithms.learners import available, build_learner
+from scg_algorithms.progress import SILENT, Progress, Task, running
 from scg_jax.files import write_atomic, write_json
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
@@ -55,27 +56,28 @@ class Context:
     Attributes:
         out: the result's own folder (``<--out>/<NAME>``). cache: the shared cache folder (``<--out>/cache``).
         profile: ``tiny``, ``quick`` or ``paper``. seeds: training/evaluation seeds (``--seeds N`` gives 0..N-1).
-        console: a ``rich`` console for progress and messages (quiet in tests).
+        progress: where progress and messages go (``scg_algorithms.progress``; silent by default, the command line
+            draws them).
     """
 
     out: Path
     cache: Path
     profile: str
     seeds: tuple[int, ...]
-    console: Any
+    progress: Progress = SILENT
 
     def budget(self, profiles: Mapping[str, Mapping]) -> dict:
         """The result's budget for this profile."""
         return dict(profiles[self.profile])
 
     def log(self, message: str) -> None:
-        self.console.print(message, highlight=False, markup=False, soft_wrap=True)
+        self.progress.note(message)
 
     @contextlib.contextmanager
     def step(self, what: str):
-        """A spinner with ``what`` while the block runs, then a line with its wall time."""
+        """``what`` as a task while the block runs, then a line with its wall time."""
         start = time.perf_counter()
-        with self.console.status(what):
+        with running(self.progress, Task(what)):
             yield
         self.log(f"  {what}: {time.perf_counter() - start:.1f} s")
 
@@ -176,18 +178,14 @@ def config_hash(*parts) -> str:
 
 # --------------------------------------------------------------------------------------------- availability
 def train_algorithms() -> tuple[str, ...]:
-    """The learners ``scg-jax train --algo`` accepts in this build (read from the CLI's parser)."""
-    import scg_cli
+    """The learners of ``scg_algorithms.learners.LEARNERS`` available in this build."""
+    from scg_algorithms.learners import LEARNERS
 
-    _, subparsers = scg_cli.build_parser()
-    for action in subparsers["train"]._actions:
-        if action.dest == "algo":
-            return tuple(action.choices or ())
-    return ()
+    return tuple(name for name in LEARNERS if available(name))
 
 
 def learner_available(algo: str) -> bool:
-    return algo in train_algorithms()
+    return available(algo)
 
 
 def safety_filter(name: str):
@@ -211,13 +209,11 @@ def repo_configs(pattern: str) -> list[Path]:
 
 # --------------------------------------------------------------------------------------------- training (cached)
 def train_policy(ctx: Context, algo: str, cfg, seed: int, total_env_steps: int, env, params):
-    """A policy trained by ``scg-jax train --algo ALGO`` on ``cfg`` (a ``scg_jax.Config``) with the budget
-    ``total_env_steps``, as a controller for ``env``/``params``; cached. Returns ``(controller, metrics.json)``.
-
-    Going through the CLI means every learner the CLI knows (``safe_ppo``, ``rarl``, ...) trains the same way.
-    """
-    import scg_cli
+    """A policy trained by ``scg_algorithms.train_run`` (as ``scg-jax train --algo ALGO`` does) on ``cfg`` (a
+    ``scg_jax.Config``) with the budget ``total_env_steps``, as a controller for ``env``/``params``; cached (the
+    folder also keeps the config as ``config.yaml``). Returns ``(controller, metrics.json)``."""
     from scg_algorithms.rl.policy import load_policy
+    from scg_algorithms.runs import train_run
 
     text = scg_jax.dump_config(cfg)
     directory = ctx.cache / f"{algo}-{config_hash(algo, text, seed, total_env_steps)}"
@@ -225,51 +221,29 @@ def train_policy(ctx: Context, algo: str, cfg, seed: int, total_env_steps: int, 
         directory.mkdir(parents=True, exist_ok=True)
         config_file = directory / "config.yaml"
         write_atomic(config_file, lambda f: f.write(text.encode()))
-        argv = [
-            "train",
-            "--algo",
-            algo,
-            "--config",
-            str(config_file),
-            "--out",
-            str(directory),
-            "--seed",
-            str(seed),
-            "--overwrite",
-            "--eval-episodes",
-            "2",
-            "--set",
-            f"training.{algo}.total_env_steps={total_env_steps}",
-        ]
         ctx.log(f"  training {algo} (seed {seed}, {total_env_steps:,} env steps) -> {directory}")
-        status = scg_cli.main(argv)
-        if status != 0:
-            raise RuntimeError(f"scg-jax {' '.join(argv)} exited with status {status}")
+        train_run(algo, cfg, directory, seed=seed, total_env_steps=total_env_steps, overwrite=True, eval_episodes=2,
+                  progress=ctx.progress, record={"config_file": str(config_file)})  # fmt: skip
     metrics = json.loads((directory / "metrics.json").read_text())
     return load_policy(directory, env, params), metrics
 
 
 def learn_gp_mpc(ctx: Context, name: str, overrides: Sequence[str], seed: int, prior_scale: float, options: Mapping):
-    """GP-MPC learned by ``scg_algorithms.gp_mpc.controller.learn`` on the env of ``experiments/configs/<name>.yaml``
-    with ``overrides``, from the prior ``prior_scale`` times the true inertial parameters, with ``options`` over
-    the config's ``controllers.gp_mpc``; cached. Returns ``(folder, history)``: load the controller for an env
-    with ``load_gp_mpc``; ``history`` rows are the learning rounds (``data_seconds``, ``rmse``,
+    """GP-MPC learned by ``scg_algorithms.train_run`` on the env of ``experiments/configs/<name>.yaml`` with
+    ``overrides``, from the prior ``prior_scale`` times the true inertial parameters, with ``options`` over the
+    config's ``controllers.gp_mpc``; cached. Returns ``(folder, history)``: load the controller for an env with
+    ``load_gp_mpc``; ``history`` rows are the learning rounds (``data_seconds``, ``rmse``,
     ``constraint_violation_steps``, ...)."""
-    from scg_algorithms.gp_mpc.controller import learn
-    from scg_algorithms.gp_mpc.run import save_run
+    from scg_algorithms.runs import train_run
 
-    cfg, env, params = load(name, overrides)
+    cfg, _, _ = load(name, overrides)
     options = {**dict(cfg.controllers.get("gp_mpc") or {}), **dict(options), "seed": seed}
     directory = ctx.cache / f"gp_mpc-{config_hash('gp_mpc', scg_jax.dump_config(cfg), options, prior_scale)}"
     if not (directory / "gp_mpc.json").is_file():
         ctx.log(f"  learning gp_mpc on {name} (seed {seed}, {options.get('rounds')} rounds) -> {directory}")
-
-        def report(entry):
-            ctx.log(f"    round {entry['round']}: {entry['data_seconds']:.1f} s of data, RMSE {entry['rmse']:.4f}")
-
-        prior = scg_jax.prior_params(env, params, prior_scale)
-        result = learn(env, params, prior, options, progress=report)
-        save_run(directory, result, options, system=env.system.name, prior_scale=prior_scale)
+        learning = scg_jax.load_config(cfg, values={"controllers.gp_mpc": options})
+        train_run("gp_mpc", learning, directory, seed=seed, overwrite=True, eval_episodes=None,
+                  prior_scale=prior_scale, progress=ctx.progress, record={"overrides": list(overrides)})  # fmt: skip
     return directory, json.loads((directory / "gp_mpc.json").read_text())["history"]
 
 
@@ -291,10 +265,9 @@ def learning_curve(ctx: Context, algo: str, cfg, seed: int, points: Sequence[int
     ``violation_fraction`` (steps in violation over episode length), ``failure_rate``, ``wall_s`` and what
     ``score(evaluation)`` adds.
     """
-    from scg_algorithms.base import JaxController, parse_options
+    from scg_algorithms.base import JaxController
     from scg_algorithms.evaluation import make_evaluator
     from scg_algorithms.rl.envs import policy_action_to_input
-    from scg_algorithms.rl.policy import algorithm_module
 
     text = scg_jax.dump_config(cfg)
     directory = ctx.cache / f"{algo}-curve-{config_hash(algo, text, seed, list(points), episodes, eval_env.num_steps)}"
@@ -303,8 +276,7 @@ def learning_curve(ctx: Context, algo: str, cfg, seed: int, points: Sequence[int
         return json.loads(cached.read_text())["rows"]
     env, params = scg_jax.make_from_config(cfg)
     options = {**dict(cfg.training.get(algo) or {}), "total_env_steps": int(points[-1])}
-    config = parse_options(algorithm_module(algo, "Config"), options, f"training.{algo}")
-    learner = algorithm_module(algo, "make_learner")(config, env)
+    config, learner = build_learner(algo, options, env)
     physics = eval_params.physics
     action_scale = getattr(config, "action_scale", 1.0)
 

@@ -29,34 +29,21 @@ def _repeat_python(n: int, body, x):
     return x
 
 
-jax_backend = SimpleNamespace(
-    name="jax",
-    sin=jnp.sin,
-    cos=jnp.cos,
-    tan=jnp.tan,
-    sqrt=jnp.sqrt,
-    exp=jnp.exp,
-    dot=jnp.dot,
-    stack=jnp.stack,
-    concatenate=jnp.concatenate,
-    matmul=jnp.matmul,
-    select=lambda v, indices: v[np.asarray(indices, dtype=int)],
-    constant=jnp.asarray,
-    repeat=_repeat_jax,
-)
+# Each operation as (JAX, CasADi), side by side.
+_OPERATIONS = {
+    "sin": (jnp.sin, cs.sin),
+    "cos": (jnp.cos, cs.cos),
+    "tan": (jnp.tan, cs.tan),
+    "sqrt": (jnp.sqrt, cs.sqrt),
+    "exp": (jnp.exp, cs.exp),
+    "dot": (jnp.dot, cs.dot),
+    "stack": (jnp.stack, lambda items: cs.vertcat(*items)),
+    "concatenate": (jnp.concatenate, lambda items: cs.vertcat(*items)),
+    "matmul": (jnp.matmul, cs.mtimes),
+    "select": (lambda v, indices: v[np.asarray(indices, dtype=int)], lambda v, indices: v[list(indices)]),
+    "constant": (jnp.asarray, cs.DM),
+    "repeat": (_repeat_jax, _repeat_python),
+}
 
-casadi_backend = SimpleNamespace(
-    name="casadi",
-    sin=cs.sin,
-    cos=cs.cos,
-    tan=cs.tan,
-    sqrt=cs.sqrt,
-    exp=cs.exp,
-    dot=cs.dot,
-    stack=lambda items: cs.vertcat(*items),
-    concatenate=lambda items: cs.vertcat(*items),
-    matmul=cs.mtimes,
-    select=lambda v, indices: v[list(indices)],
-    constant=cs.DM,
-    repeat=_repeat_python,
-)
+jax_backend = SimpleNamespace(name="jax", **{name: ops[0] for name, ops in _OPERATIONS.items()})
+casadi_backend = SimpleNamespace(name="casadi", **{name: ops[1] for name, ops in _OPERATIONS.items()})

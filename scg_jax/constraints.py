@@ -74,7 +74,7 @@ def parse_constraint(path: str, c, system, state_bounds, input_bounds):
 
     Args:
         path: dotted name for error messages, e.g. ``"constraints[1]"``.
-        c: a ``scg_jax.config.ConstraintConfig`` (its type, keys and value types are already checked).
+        c: a ``scg_jax.env_config.ConstraintConfig`` (its type, keys and value types are already checked).
         system: the ``System``. state_bounds, input_bounds: ``(low, high)`` numpy pairs.
 
     Raises:

@@ -85,7 +85,7 @@ def parse_disturbance(path: str, d, channel: str, dim: int, num_steps: int):
     """Check one disturbance against its channel; return ``(DisturbanceSpec, dict of numpy defaults)``.
 
     Args:
-        path: dotted name for messages (``"disturbances.action[0]"``). d: a ``scg_jax.config.DisturbanceConfig``
+        path: dotted name for messages (``"disturbances.action[0]"``). d: a ``scg_jax.env_config.DisturbanceConfig``
             (type, keys and value types already checked). channel, dim: the channel and its dimension.
         num_steps: control steps per episode (an impulse's duration must fit).
 

@@ -51,13 +51,12 @@ from scg_jax import randomization, trajectories
 from scg_jax import validation as V
 from scg_jax._pytree import pytree_dataclass
 from scg_jax.backends import jax_backend
+from scg_jax.env_config import _OPTION_DEFAULTS, DEFAULT_TASK, DistributionConfig, EnvConfig
 from scg_jax.integrators import make_discrete_dynamics
 from scg_jax.systems import System, get_system
 from scg_jax.validation import FieldError
 
-TASKS = ("stabilization", "tracking")
-ACTION_MODES = ("physical", "normalized")
-REWARD_TYPES = ("quadratic", "exponential", "upright")
+TRAJECTORY_KEYS = ("shape", "num_cycles", "plane", "offset", "scale")
 CHANNEL_INDEX = {channel: i for i, channel in enumerate(disturbances_lib.CHANNELS)}
 TRAJECTORY_KEYS = ("shape", "num_cycles", "plane", "offset", "scale")
 
@@ -145,45 +144,6 @@ class StepOutput(NamedTuple):
     terminated: Any
     truncated: Any
     info: dict
-
-
-_OPTION_DEFAULTS = {
-    "ctrl_freq": 50,
-    "physics_freq": 1000,
-    "episode_len_sec": 5.0,
-    "integrator": "rk4",
-    "action_mode": "physical",
-    "reward_type": "quadratic",
-    "obs_goal_horizon": 0,
-    "done_on_out_of_bounds": True,
-    "done_on_goal": False,
-    "trajectory": None,
-    "physics": None,
-    "Q": None,
-    "R": None,
-    "goal": None,
-    "goal_tolerance": 0.05,
-    "init_state": None,
-    "physics_randomization": None,
-    "mse_weight": None,
-    "constraints": None,
-    "done_on_violation": False,
-    "violation_penalty": 0.0,
-    "disturbances": None,
-    "adversary": None,
-}
-
-
-def _weight(path: str, value, n: int) -> np.ndarray:
-    """A cost weight given as its diagonal (n,) or as a full symmetric positive semidefinite (n, n) matrix."""
-    array = np.asarray(value, dtype=float)
-    if array.shape == (n,):
-        array = np.diag(array)
-    if array.shape != (n, n):
-        raise FieldError(path, f"expected {n} diagonal values or an ({n}, {n}) matrix, got shape {array.shape}")
-    if not np.allclose(array, array.T) or np.linalg.eigvalsh(array).min() < -1e-12:
-        raise FieldError(path, f"must be symmetric positive semidefinite, got {V.show(array)}")
-    return array
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -667,7 +627,7 @@ def prior_params(env: Env, params: EnvParams, scale: float = 1.5, fields=None) -
     return params.replace(physics=params.physics.replace(**scaled))
 
 
-def make(system, task: str = "stabilization", **options) -> Env:
+def make(system, task: str = DEFAULT_TASK, **options) -> Env:
     """Build an environment.
 
     Args:
@@ -699,10 +659,8 @@ def make(system, task: str = "stabilization", **options) -> Env:
         scg_jax.validation.FieldError (a ValueError): ``"<option path>: <what is wrong>; <what is allowed>"``,
             e.g. ``ctrl_freq: expected an integer, got '50'`` or ``constraints[1].bound: must be >= 0, got -1``.
     """
-    from scg_jax.config import EnvConfig
-
     if isinstance(system, EnvConfig):
-        if options or task != "stabilization":
+        if options or task != DEFAULT_TASK:
             raise TypeError("make: pass either an EnvConfig alone or a system name with options, not both")
         return _make(system)
     V.check_keys(options, "", _OPTION_DEFAULTS, what="option")
@@ -711,11 +669,36 @@ def make(system, task: str = "stabilization", **options) -> Env:
 
 def _make(cfg) -> Env:
     """``make`` of a checked ``EnvConfig``: the checks that need the system or several options; field paths are
-    relative to the config's ``env`` section."""
-    from scg_jax.config import DistributionConfig
+    relative to the config's ``env`` section.
 
+    Each part below checks its options and returns ``(static, values)``: fields of the ``Env`` (structure) and
+    entries of its default ``EnvParams`` (numbers, as numpy).
+    """
     spec = get_system(cfg.system)
-    task = cfg.task
+    # The options the env keeps as they were given.
+    given = ("integrator", "action_mode", "reward_type", "done_on_out_of_bounds", "done_on_goal", "done_on_violation")
+    static = {"system": spec, "task": cfg.task, **_timing(cfg), "obs_goal_horizon": _task_options(cfg, spec)}
+    static.update({name: getattr(cfg, name) for name in given})
+    physics = _physics(cfg, spec)
+    num_steps = round(static["episode_len_sec"] * static["ctrl_freq"])
+    channel_dims = {"action": spec.nu, "observation": spec.nx, "dynamics": spec.f_ext_dim}
+    values = {"physics": physics}
+    for part_static, part_values in (
+        _trajectory(cfg, spec),
+        _randomization(cfg, spec),
+        _constraints(cfg, spec, physics),
+        _disturbances(cfg, channel_dims, num_steps),
+        _adversary(cfg, channel_dims),
+        ({}, _costs_and_goal(cfg, spec)),
+    ):
+        static.update(part_static)
+        values.update(part_values)
+    return Env(**static, _default_params_numpy=values)
+
+
+def _timing(cfg) -> dict:
+    """``ctrl_freq`` (Hz), ``physics_freq`` (Hz, a multiple of it) and ``episode_len_sec`` (s, whole control
+    periods)."""
     ctrl_freq = V.integer(cfg.ctrl_freq, "ctrl_freq", minimum=1)
     physics_freq = V.integer(cfg.physics_freq, "physics_freq", minimum=1)
     if physics_freq % ctrl_freq:
@@ -731,69 +714,95 @@ def _make(cfg) -> Env:
             "episode_len_sec",
             f"must be positive and a whole number of control periods (1/{ctrl_freq} s), got {episode_len_sec!r}",
         )
+    return {"ctrl_freq": ctrl_freq, "physics_freq": physics_freq, "episode_len_sec": episode_len_sec}
+
+
+def _task_options(cfg, spec: System) -> int:
+    """Check the options allowed only for some systems or tasks; return ``obs_goal_horizon`` (>= 0)."""
     if cfg.reward_type == "upright" and spec.name != "cartpole":
         raise FieldError(
             "reward_type", f"'upright' is only for cartpole; allowed values for {spec.name} are quadratic, exponential"
         )
     horizon = V.integer(cfg.obs_goal_horizon, "obs_goal_horizon", minimum=0)
-    if cfg.done_on_goal and task != "stabilization":
+    if cfg.done_on_goal and cfg.task != "stabilization":
         raise FieldError("done_on_goal", "only allowed with task 'stabilization'")
+    return horizon
 
-    physics_overrides = dict(cfg.physics or {})
-    fields = [f.name for f in dataclasses.fields(spec.params_cls)]
-    V.check_keys(physics_overrides, "physics", fields, what="parameter", where=f"of {spec.name}")
-    physics = spec.params_cls(**physics_overrides)
+
+def _physics(cfg, spec: System):
+    """The system's nominal ``Params`` with the ``physics`` overrides, checked."""
+    overrides = dict(cfg.physics or {})
+    V.check_keys(overrides, "physics", _physics_fields(spec), what="parameter", where=f"of {spec.name}")
+    physics = spec.params_cls(**overrides)
     spec.validate_params(physics)
+    return physics
 
-    trajectory = None
-    shape = plane = None
-    if task == "tracking":
-        given = cfg.trajectory
 
-        def pick(name, default):  # a key left out of the trajectory section takes the system's default
-            value = None if given is None else getattr(given, name)
-            return default if value is None else value
+def _physics_fields(spec: System) -> list[str]:
+    return [f.name for f in dataclasses.fields(spec.params_cls)]
 
-        shape, plane = pick("shape", "circle"), pick("plane", spec.default_plane)
-        trajectory = {
-            "scale": pick("scale", spec.default_scale),
-            "offset": V.vector(pick("offset", spec.default_offset), "trajectory.offset", 2),
-            "num_cycles": V.positive(pick("num_cycles", 1.0), "trajectory.num_cycles"),
-        }
-    elif cfg.trajectory is not None:
-        raise FieldError("trajectory", "only allowed with task 'tracking'")
-    if trajectory is None:  # unused by stabilization but kept so params have one structure per system
-        trajectory = {"scale": spec.default_scale, "offset": np.asarray(spec.default_offset), "num_cycles": 1.0}
 
-    nx, nu = spec.nx, spec.nu
+def _trajectory(cfg, spec: System) -> tuple[dict, dict]:
+    """The trajectory's shape and plane, and its values; stabilization keeps the system's default values, unused,
+    so that params have one structure per system."""
+    if cfg.task != "tracking":
+        if cfg.trajectory is not None:
+            raise FieldError("trajectory", "only allowed with task 'tracking'")
+        values = {"scale": spec.default_scale, "offset": np.asarray(spec.default_offset), "num_cycles": 1.0}
+        return {"trajectory_shape": None, "trajectory_plane": None}, {"trajectory": values}
+    given = cfg.trajectory
+
+    def pick(name, default):  # a key left out of the trajectory section takes the system's default
+        value = None if given is None else getattr(given, name)
+        return default if value is None else value
+
+    static = {"trajectory_shape": pick("shape", "circle"), "trajectory_plane": pick("plane", spec.default_plane)}
+    values = {
+        "scale": pick("scale", spec.default_scale),
+        "offset": V.vector(pick("offset", spec.default_offset), "trajectory.offset", 2),
+        "num_cycles": V.positive(pick("num_cycles", 1.0), "trajectory.num_cycles"),
+    }
+    return static, {"trajectory": values}
+
+
+def _randomization(cfg, spec: System) -> tuple[dict, dict]:
+    """The distributions of the initial state (default: the system's uniform range) and of the randomised physical
+    parameters."""
     init = cfg.init_state
     if init is None:
         init = DistributionConfig(type="uniform", low=spec.init_low.tolist(), high=spec.init_high.tolist())
     init_spec, init_values = randomization.parse_distribution(
-        "init_state", init, (nx,), positive=False, allow_relative=False
+        "init_state", init, (spec.nx,), positive=False, allow_relative=False
     )
     randomized = cfg.physics_randomization or {}
-    V.check_keys(randomized, "physics_randomization", fields, what="parameter", where=f"of {spec.name}")
+    V.check_keys(randomized, "physics_randomization", _physics_fields(spec), what="parameter", where=f"of {spec.name}")
     physics_specs, physics_values = {}, {}
     for name, raw in randomized.items():
         physics_specs[name], physics_values[name] = randomization.parse_distribution(
             f"physics_randomization.{name}", raw, (), positive=True, allow_relative=True
         )
+    static = {"init_state_spec": init_spec, "physics_randomization_specs": physics_specs}
+    return static, {"init_state": init_values, "physics_randomization": physics_values}
 
+
+def _constraints(cfg, spec: System, physics) -> tuple[dict, dict]:
+    """The constraints in option order and the violation penalty."""
     state_bounds = (spec.state_low, spec.state_high)
     input_bounds = tuple(np.asarray(b, dtype=float) for b in spec.input_bounds(physics))
     parsed = [
         constraints_lib.parse_constraint(f"constraints[{i}]", c, spec, state_bounds, input_bounds)
         for i, c in enumerate(cfg.constraints or ())
     ]
-    constraint_specs = tuple(p[0] for p in parsed)
     penalty = cfg.violation_penalty
     if not penalty >= 0:
         raise FieldError("violation_penalty", f"must be >= 0 (it is subtracted from the reward), got {penalty:g}")
+    static = {"constraint_specs": tuple(p[0] for p in parsed)}
+    return static, {"constraints": [p[1] for p in parsed], "violation_penalty": penalty}
 
-    num_steps = round(steps)
-    channel_dims = {"action": nu, "observation": nx, "dynamics": spec.f_ext_dim}
-    disturbance_specs, disturbance_values = {}, {}
+
+def _disturbances(cfg, channel_dims: dict, num_steps: int) -> tuple[dict, dict]:
+    """The disturbances of the channels that have any."""
+    specs, values = {}, {}
     for channel, entries in (cfg.disturbances or {}).items():
         if not entries:
             continue
@@ -803,50 +812,29 @@ def _make(cfg) -> Env:
             )
             for i, d in enumerate(entries)
         ]
-        disturbance_specs[channel] = tuple(item[0] for item in items)
-        disturbance_values[channel] = [item[1] for item in items]
+        specs[channel] = tuple(item[0] for item in items)
+        values[channel] = [item[1] for item in items]
+    return {"disturbance_specs": specs}, {"disturbances": values}
 
-    adversary = cfg.adversary
-    adversary_channel, adversary_scale = None, np.zeros(0)
-    if adversary is not None:
-        adversary_channel = adversary.channel
-        scale = 1.0 if adversary.scale is None else adversary.scale
-        adversary_scale = V.vector(scale, "adversary.scale", channel_dims[adversary_channel], broadcast=True)
 
-    defaults = {
-        "physics": physics,
-        "Q": _weight("Q", spec.q_diag if cfg.Q is None else cfg.Q, nx),
-        "R": _weight("R", spec.r_diag if cfg.R is None else cfg.R, nu),
+def _adversary(cfg, channel_dims: dict) -> tuple[dict, dict]:
+    """The adversary input's channel and scale (dim,); no channel and an empty scale without an adversary."""
+    if cfg.adversary is None:
+        return {"adversary_channel": None}, {"adversary_scale": np.zeros(0)}
+    channel = cfg.adversary.channel
+    scale = 1.0 if cfg.adversary.scale is None else cfg.adversary.scale
+    return {"adversary_channel": channel}, {
+        "adversary_scale": V.vector(scale, "adversary.scale", channel_dims[channel], broadcast=True)
+    }
+
+
+def _costs_and_goal(cfg, spec: System) -> dict:
+    """The cost weights, the goal and its tolerance, and the weights of the reported tracking error."""
+    nx, nu = spec.nx, spec.nu
+    return {
+        "Q": V.weight_matrix(spec.q_diag if cfg.Q is None else cfg.Q, "Q", nx),
+        "R": V.weight_matrix(spec.r_diag if cfg.R is None else cfg.R, "R", nu),
         "goal": V.vector(spec.goal if cfg.goal is None else cfg.goal, "goal", nx),
         "goal_tolerance": V.positive(cfg.goal_tolerance, "goal_tolerance"),
-        "init_state": init_values,
-        "physics_randomization": physics_values,
-        "trajectory": trajectory,
         "mse_weight": V.vector(spec.mse_weight if cfg.mse_weight is None else cfg.mse_weight, "mse_weight", nx),
-        "constraints": [p[1] for p in parsed],
-        "violation_penalty": penalty,
-        "disturbances": disturbance_values,
-        "adversary_scale": adversary_scale,
     }
-    return Env(
-        system=spec,
-        task=task,
-        ctrl_freq=ctrl_freq,
-        physics_freq=physics_freq,
-        episode_len_sec=episode_len_sec,
-        integrator=cfg.integrator,
-        action_mode=cfg.action_mode,
-        reward_type=cfg.reward_type,
-        obs_goal_horizon=horizon,
-        done_on_out_of_bounds=cfg.done_on_out_of_bounds,
-        done_on_goal=cfg.done_on_goal,
-        trajectory_shape=shape,
-        trajectory_plane=plane,
-        done_on_violation=cfg.done_on_violation,
-        init_state_spec=init_spec,
-        physics_randomization_specs=physics_specs,
-        constraint_specs=constraint_specs,
-        disturbance_specs=disturbance_specs,
-        adversary_channel=adversary_channel,
-        _default_params_numpy=defaults,
-    )

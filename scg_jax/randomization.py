@@ -55,7 +55,7 @@ def parse_distribution(path: str, dist, shape: tuple[int, ...], positive: bool, 
 
     Args:
         path: dotted name for messages (``"init_state"``, ``"physics_randomization.mass"``).
-        dist: a ``scg_jax.config.DistributionConfig`` (type and keys already checked), or a fixed value (a number
+        dist: a ``scg_jax.env_config.DistributionConfig`` (type and keys already checked), or a fixed value (a number
             or a list of numbers), which means ``uniform`` with ``low = high``.
         shape: ``()`` for a physical parameter, ``(nx,)`` for the initial state. positive: every drawable value
             must be > 0. allow_relative: whether ``relative`` may be set.

@@ -34,7 +34,6 @@ from __future__ import annotations
 import math
 import os
 import threading
-import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,6 +45,7 @@ from matplotlib.colors import to_rgba
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
+from scg_jax.caching import CompileCache
 from scg_jax.video import MAX_GIF_FPS, SUFFIXES, write_gif, write_mp4
 
 __all__ = ["DRAWN_ARM", "SUFFIXES", "VIEWS", "animate", "animate_rollout_file", "animation_frames", "render_frame"]
@@ -640,41 +640,21 @@ _VIEW_FACTORIES = {
 }
 VIEWS = tuple(_VIEW_FACTORIES)
 """The views a ``System.view`` may name."""
-_SCENES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-_SCENES_LOCK = threading.Lock()
-
-
-def _env_cache(env) -> dict:
-    with _SCENES_LOCK:
-        cache = _SCENES.get(env)
-        if cache is None:
-            cache = _SCENES[env] = {}
-        return cache
+# A figure per env and size (drawing one costs more than the frames drawn on it) and the env's default params.
+_SCENES = CompileCache(maxsize=16)
 
 
 def _scene(env, width: int, height: int) -> _Scene:
-    cache = _env_cache(env)
-    with _SCENES_LOCK:
-        scene = cache.get((width, height))
-        if scene is None:
-            view = env.system.view
-            if view not in _VIEW_FACTORIES:
-                raise ValueError(
-                    f"render: system {env.system.name!r} asks for view {view!r}; allowed views are {', '.join(VIEWS)}"
-                )
-            scene = cache[(width, height)] = _Scene(_VIEW_FACTORIES[view](), width, height)
-        return scene
+    view = env.system.view
+    if view not in _VIEW_FACTORIES:
+        raise ValueError(
+            f"render: system {env.system.name!r} asks for view {view!r}; allowed views are {', '.join(VIEWS)}"
+        )
+    return _SCENES.get((width, height), lambda: _Scene(_VIEW_FACTORIES[view](), width, height), owners=(env,))
 
 
 def _default_params(env):
-    cache = _env_cache(env)
-    with _SCENES_LOCK:
-        params = cache.get("params")
-    if params is None:
-        params = env.default_params
-        with _SCENES_LOCK:
-            cache["params"] = params
-    return params
+    return _SCENES.get("params", lambda: env.default_params, owners=(env,))
 
 
 def _static(env, params, x_ref, title: str, reach: float) -> _Static:
@@ -768,7 +748,10 @@ def _as_rollout(xs, x_ref, dt):
 class _Animation:
     """A rollout prepared for drawing: ``frame(k)`` renders control step ``k``; ``steps`` are the drawn ones."""
 
-    def __init__(self, env, xs, params, x_ref, max_copies, width, height, stride, trail, dt):
+    def __init__(
+        self, env, xs, params=None, x_ref=None, *, max_copies: int = 8, width: int = 480, height: int = 480,
+        stride: int | None = None, trail: float = 1.0, dt: float | None = None,
+    ):  # fmt: skip
         self.width, self.height = _check_size(width, height)
         if isinstance(max_copies, bool) or not float(max_copies).is_integer() or max_copies < 1:
             raise ValueError(f"max_copies: expected a positive integer, got {max_copies!r}")
@@ -825,41 +808,16 @@ class _Animation:
         return (self.frame(k) for k in self.steps)
 
 
-def animation_frames(
-    env,
-    xs,
-    params=None,
-    x_ref=None,
-    max_copies: int = 8,
-    width: int = 480,
-    height: int = 480,
-    *,
-    stride: int | None = None,
-    trail: float = 1.0,
-    dt: float | None = None,
-):
+def animation_frames(env, xs, params=None, x_ref=None, **options):
     """The frames ``animate`` writes, as an iterator of (height, width, 3) uint8 arrays (for video loggers).
 
-    Arguments as for ``animate``; one frame per ``stride`` control steps, ``len(range(0, T, stride))`` in all.
+    Arguments and ``options`` (``max_copies``, ``width``, ``height``, ``stride``, ``trail``, ``dt``) as for
+    ``animate``; one frame per ``stride`` control steps, ``len(range(0, T, stride))`` in all.
     """
-    return iter(_Animation(env, xs, params, x_ref, max_copies, width, height, stride, trail, dt))
+    return iter(_Animation(env, xs, params, x_ref, **options))
 
 
-def animate(
-    env,
-    xs,
-    path,
-    params=None,
-    x_ref=None,
-    fps=None,
-    max_copies: int = 8,
-    width: int = 480,
-    height: int = 480,
-    *,
-    stride: int | None = None,
-    trail: float = 1.0,
-    dt: float | None = None,
-) -> Path:
+def animate(env, xs, path, params=None, x_ref=None, fps=None, **options) -> Path:
     """Write an animation of a rollout as a GIF or an MP4 (by the suffix of ``path``).
 
     Args:
@@ -875,11 +833,13 @@ def animate(
         x_ref: (T + 1, nx) reference to draw (default: the dict's ``x_ref``, else ``env.reference(params)`` for
             tracking). Tracking also marks the current reference point (open circle).
         fps: frames per second (default: real time, ``1 / (dt * stride)``, i.e. ``env.ctrl_freq / stride``).
-        max_copies: draw the first this many copies, overlaid with some transparency.
-        width, height: frame size in pixels.
-        stride: draw every ``stride``-th step (default: the smallest stride that keeps real time at <= 50 fps).
-        trail: seconds of past positions drawn behind each copy (pole tip for the cart-pole); 0 for none.
-        dt: seconds per row of ``xs`` (default: the dict's ``dt``, else ``env.dt``).
+        options: keywords of the drawing.
+            max_copies: draw the first this many copies, overlaid with some transparency (default 8).
+            width, height: frame size in pixels (default 480 x 480).
+            stride: draw every ``stride``-th step (default: the smallest stride that keeps real time at <= 50 fps).
+            trail: seconds of past positions drawn behind each copy (pole tip for the cart-pole); 0 for none
+                (default 1).
+            dt: seconds per row of ``xs`` (default: the dict's ``dt``, else ``env.dt``).
 
     Returns:
         ``path`` as a ``Path``.
@@ -891,7 +851,7 @@ def animate(
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
         raise ValueError(f"path: unsupported suffix {path.suffix!r}; allowed suffixes are {', '.join(SUFFIXES)}")
-    animation = _Animation(env, xs, params, x_ref, max_copies, width, height, stride, trail, dt)
+    animation = _Animation(env, xs, params, x_ref, **options)
     fps = 1.0 / (animation.dt * animation.stride) if fps is None else float(fps)
     if not (np.isfinite(fps) and fps > 0):
         raise ValueError(f"fps: expected a positive number, got {fps!r}")

@@ -39,6 +39,7 @@ __all__ = [
     "show",
     "string",
     "vector",
+    "weight_matrix",
 ]
 
 
@@ -239,4 +240,26 @@ def matrix(
     if array.shape != expected:
         want = f"({'rows' if rows is None else rows}, {'columns' if cols is None else cols})"
         raise FieldError(path, f"expected a matrix of shape {want}, got shape {array.shape}")
+    return array
+
+
+def weight_matrix(value, path: str, n: int, *, diagonal_only: bool = False) -> np.ndarray:
+    """A quadratic cost weight (Q or R) as a float64 (n, n) matrix; the one place such weights are built.
+
+    ``value`` is its diagonal (``n`` numbers) or, unless ``diagonal_only`` (options named ``*_diag``), a full
+    (n, n) matrix. The result must be symmetric positive semidefinite (a diagonal: every entry >= 0).
+    """
+    if diagonal_only:
+        diagonal = vector(value, path, n)
+        if np.any(diagonal < 0):
+            raise FieldError(path, f"weights must be >= 0, got {diagonal.tolist()}")
+        return np.diag(diagonal)
+    array = np.asarray(value, dtype=np.float64)
+    if array.shape == (n,):
+        array = np.diag(array)
+    if array.shape != (n, n):
+        raise FieldError(path, f"expected {n} diagonal values or an ({n}, {n}) matrix, got shape {array.shape}")
+    finite = np.all(np.isfinite(array))
+    if not (finite and np.allclose(array, array.T) and np.linalg.eigvalsh(array).min() >= -1e-12):
+        raise FieldError(path, f"must be symmetric positive semidefinite, got {show(array)}")
     return array

@@ -7,8 +7,6 @@ it is whole or absent.
 
 from __future__ import annotations
 
-import os
-import tempfile
 import warnings
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -16,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.colors import to_rgba
 
-from scg_jax.files import write_atomic
+from scg_jax.files import replacing, write_atomic
 
 __all__ = ["MAX_GIF_FPS", "SUFFIXES", "write_gif", "write_mp4"]
 
@@ -98,12 +96,9 @@ def write_mp4(path: Path, frames: Iterable[np.ndarray], fps: float, width: int, 
 
     # libx264's yuv420p needs even sizes: pad odd frames with a white row/column rather than let ffmpeg rescale.
     pad_h, pad_w = height % 2, width % 2
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".mp4")
-    os.close(fd)
-    try:
+    with replacing(path, ".mp4") as tmp:
         writer = imageio_ffmpeg.write_frames(
-            tmp,
+            str(tmp),
             (width + pad_w, height + pad_h),
             fps=fps,
             codec="libx264",
@@ -121,9 +116,3 @@ def write_mp4(path: Path, frames: Iterable[np.ndarray], fps: float, width: int, 
                 frame = np.pad(frame, ((0, pad_h), (0, pad_w), (0, 0)), constant_values=255)
             writer.send(np.ascontiguousarray(frame))
         writer.close()
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise

@@ -6,10 +6,9 @@ import numpy as np
 import pytest
 
 import scg_jax
+from scg_jax.adapters import brax as brax_adapter
+from scg_jax.adapters import gymnasium as gymnasium_adapter
 from scg_jax.rollout import initial_reset_keys, next_reset_key
-
-gymnasium_adapter = pytest.importorskip("scg_jax.adapters.gymnasium")
-brax_adapter = pytest.importorskip("scg_jax.adapters.brax")
 
 NUM_ENVS, NUM_STEPS, SEED = 6, 70, 5
 OPTIONS = {"action_mode": "normalized", "episode_len_sec": 0.6}  # 30 steps per episode

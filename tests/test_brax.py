@@ -8,18 +8,25 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+# isort: off
+# The adapter first: it imports brax without the warp message. A broken adapter fails this file, it is not skipped.
+from scg_jax.adapters.brax import BraxEnv, wrap_for_training
+from brax.envs.wrappers.training import wrap as brax_default_wrap
+from brax.training.acting import Evaluator
+# isort: on
+
 import scg_jax
-
-pytest.importorskip("scg_jax.adapters.brax")  # first: it imports brax without the warp message
-
-from brax.envs.wrappers.training import wrap as brax_default_wrap  # noqa: E402
-from brax.training.acting import Evaluator  # noqa: E402
-
-from scg_jax.adapters.brax import BraxEnv, wrap_for_training  # noqa: E402
 
 # brax 0.14.2's trainers call jax.device_put_replicated, deprecated in the pinned jax 0.9.2 (removed in 0.10).
 _IGNORE_REPLICATED = pytest.mark.filterwarnings("ignore:jax.device_put_replicated:DeprecationWarning")
 _THETA_CONSTRAINT = [{"type": "abs_bound", "on": "state", "active_dims": [2], "bound": 0.2}]
+
+
+def _constrained_cartpole(**options):
+    """The cart-pole with normalised actions, the exponential reward and the constraint |theta| <= 0.2 rad."""
+    return scg_jax.make(
+        "cartpole", action_mode="normalized", reward_type="exponential", constraints=_THETA_CONSTRAINT, **options
+    )
 
 
 def _run(wrapped, num_envs, actions, key=1):
@@ -227,14 +234,8 @@ def test_randomization_fn_gives_each_slot_its_own_params():
 
 
 def test_brax_evaluator_reports_the_episode_cost_and_reward_of_the_functional_env():
-    env = scg_jax.make(
-        "cartpole",
-        action_mode="normalized",
-        reward_type="exponential",
-        episode_len_sec=1.0,
-        init_state=[0.0, 0.0, 0.15, 0.0],  # deterministic: falls through |theta| = 0.2 and on to a crash
-        constraints=_THETA_CONSTRAINT,
-    )
+    # Deterministic: falls through |theta| = 0.2 and on to a crash.
+    env = _constrained_cartpole(episode_len_sec=1.0, init_state=[0.0, 0.0, 0.15, 0.0])
     params = env.default_params
     traj = scg_jax.rollout(env, params, lambda *_: jnp.zeros(1), jax.random.key(0), num_envs=1, auto_reset=False)
     done = np.asarray(traj.terminated[:, 0] | traj.truncated[:, 0])
@@ -268,13 +269,7 @@ def test_brax_evaluator_reports_the_episode_cost_and_reward_of_the_functional_en
 
 
 def _learning_env():
-    env = scg_jax.make(
-        "cartpole",
-        action_mode="normalized",
-        reward_type="exponential",
-        episode_len_sec=2.0,
-        constraints=_THETA_CONSTRAINT,
-    )
+    env = _constrained_cartpole(episode_len_sec=2.0)
     return env, BraxEnv(env)
 
 
@@ -314,50 +309,35 @@ def _learns(name, train, **options):
     assert last[2] < first[2]
 
 
+def _agent(name):
+    """brax's ``train`` of the agent and the options it learns the cart-pole with (small networks, short runs)."""
+    if name == "ppo":
+        from brax.training.agents.ppo import networks, train
+
+        networks = functools.partial(
+            networks.make_ppo_networks, policy_hidden_layer_sizes=(32, 32), value_hidden_layer_sizes=(32, 32)
+        )
+        options = dict(
+            num_timesteps=100_000, num_envs=64, batch_size=32, num_minibatches=8, unroll_length=20,
+            num_updates_per_batch=8, learning_rate=3e-3, entropy_cost=1e-3, discounting=0.97,
+        )  # fmt: skip
+    else:
+        from brax.training.agents.sac import networks, train
+
+        networks = functools.partial(networks.make_sac_networks, hidden_layer_sizes=(32, 32))
+        options = dict(
+            num_timesteps=12_000, num_envs=16, batch_size=256, grad_updates_per_step=16, min_replay_size=1000,
+            max_replay_size=100_000, learning_rate=3e-3, discounting=0.97, tau=0.05,
+        )  # fmt: skip
+    return train.train, {**options, "network_factory": networks}
+
+
 @pytest.mark.slow
 @_IGNORE_REPLICATED
-def test_ppo_learns_cartpole_stabilization():
-    from brax.training.agents.ppo import networks as ppo_networks
-    from brax.training.agents.ppo import train as ppo
-
-    _learns(
-        "PPO",
-        ppo.train,
-        num_timesteps=100_000,
-        num_envs=64,
-        batch_size=32,
-        num_minibatches=8,
-        unroll_length=20,
-        num_updates_per_batch=8,
-        learning_rate=3e-3,
-        entropy_cost=1e-3,
-        discounting=0.97,
-        network_factory=functools.partial(
-            ppo_networks.make_ppo_networks, policy_hidden_layer_sizes=(32, 32), value_hidden_layer_sizes=(32, 32)
-        ),
-    )
-
-
-@pytest.mark.slow
-@_IGNORE_REPLICATED
-def test_sac_learns_cartpole_stabilization():
-    from brax.training.agents.sac import networks as sac_networks
-    from brax.training.agents.sac import train as sac
-
-    _learns(
-        "SAC",
-        sac.train,
-        num_timesteps=12_000,
-        num_envs=16,
-        batch_size=256,
-        grad_updates_per_step=16,
-        min_replay_size=1000,
-        max_replay_size=100_000,
-        learning_rate=3e-3,
-        discounting=0.97,
-        tau=0.05,
-        network_factory=functools.partial(sac_networks.make_sac_networks, hidden_layer_sizes=(32, 32)),
-    )
+@pytest.mark.parametrize("name", ["ppo", "sac"])
+def test_brax_agent_learns_cartpole_stabilization(name):
+    train, options = _agent(name)
+    _learns(name, train, **options)
 
 
 def test_importing_the_adapter_prints_no_warp_message():

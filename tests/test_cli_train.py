@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import scg_algorithms.rl.training as training
+from scg_algorithms.progress import Progress
 from scg_cli import main
 from tests.rl_helpers import set_options
 
@@ -67,7 +68,7 @@ def test_ctrl_c_prints_the_checkpoint_and_the_resume_command(tmp_path, capsys, m
     out = tmp_path / "run"
 
     def interrupted(learner, env, params, key, out_dir, **options):
-        assert options["checkpoint_seconds"] == 5.0 and options["progress_seconds"] == 2.0
+        assert options["checkpoint_seconds"] == 5.0 and isinstance(options["progress"], Progress)
         raise training.TrainingInterrupted(out_dir, 1, 2, out_dir / "checkpoint.msgpack")
 
     monkeypatch.setattr(training, "run_training", interrupted)
@@ -119,18 +120,28 @@ _TINY_GP_MPC = [
 
 @pytest.mark.slow
 def test_train_gp_mpc_writes_a_run_that_eval_uses(tmp_path, capsys):
+    """One round of 2 episodes of 20 steps (4 s of data); the final evaluation in metrics.json (key(seed + 1)) is what
+    scg-jax eval --seed 1 measures on the saved GP, episode by episode."""
     out = tmp_path / "gp"
     argv = ["train", "--algo", "gp_mpc", *_ENV, *_TINY_GP_MPC, "--prior-scale", "1.5", "--eval-episodes", "2"]
     assert main([*argv, "--out", str(out)]) == 0
-    for name in ("gp_mpc.json", "gp_mpc.npz", "learning_curve.csv", "learning_curve.png", "metrics.json"):
-        assert (out / name).is_file(), name
+    assert "wrote " + f"{out}/gp_mpc.json, gp_mpc.npz, learning_curve.csv, learning_curve.png, metrics.json" in (
+        capsys.readouterr().out
+    )
     record = json.loads((out / "metrics.json").read_text())
-    assert record["algo"] == "gp_mpc" and record["prior_scale"] == 1.5
-    assert [h["round"] for h in record["history"]] == [0, 1] and record["history"][1]["data_seconds"] == 4.0
-    assert main(["eval", *_ENV, *_TINY_GP_MPC, "--controller", str(out), "--episodes", "2",
+    assert record["algo"] == "gp_mpc" and record["prior_scale"] == 1.5 and record["options"]["rounds"] == 1
+    history = record["history"]
+    assert [h["round"] for h in history] == [0, 1] and [h["transitions"] for h in history] == [0, 40]
+    assert [h["data_seconds"] for h in history] == [0.0, 4.0]
+    curve = (out / "learning_curve.csv").read_text().splitlines()
+    assert [float(line.split(",")[3]) for line in curve[1:]] == pytest.approx([h["rmse"] for h in history])
+    assert main(["eval", *_ENV, *_TINY_GP_MPC, "--controller", str(out), "--episodes", "2", "--seed", "1",
                  "--out", str(tmp_path / "eval.json")]) == 0  # fmt: skip
     evaluated = json.loads((tmp_path / "eval.json").read_text())
-    assert evaluated["controller"] == "gp_mpc" and np.isfinite(evaluated["rmse"])
+    assert evaluated["controller"] == "gp_mpc"
+    final = record["evaluation"]
+    np.testing.assert_allclose(evaluated["per_episode"]["rmse"], final["per_episode"]["rmse"], rtol=1e-6)
+    assert evaluated["rmse"] == pytest.approx(final["rmse"], rel=1e-6) and np.isfinite(final["rmse"])
     capsys.readouterr()
     assert main([*argv, "--out", str(out)]) == 2
     assert "already holds a run; pass --overwrite to replace it" in _error(capsys)

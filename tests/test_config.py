@@ -17,25 +17,31 @@ import scg_jax
 from scg_algorithms import CONTROLLERS
 from scg_algorithms.base import parse_options
 from scg_algorithms.rl.policy import algorithm_module
+from scg_algorithms.safety_filters import FILTERS
 from scg_jax import constraints as constraints_lib
 from scg_jax import disturbances as disturbances_lib
 from scg_jax import randomization
 from scg_jax.config import (
-    AdversaryConfig,
+    SAFETY_FILTER_NAMES,
     Config,
     ConfigError,
-    ConstraintConfig,
-    DistributionConfig,
-    DisturbanceConfig,
     EnvConfig,
-    TrajectoryConfig,
     dump_config,
     load_config,
     make_from_config,
 )
 from scg_jax.constraints import ConstraintSpec
 from scg_jax.disturbances import DisturbanceSpec
-from scg_jax.env import _OPTION_DEFAULTS, TASKS, TRAJECTORY_KEYS
+from scg_jax.env import TRAJECTORY_KEYS
+from scg_jax.env_config import (
+    _OPTION_DEFAULTS,
+    TASKS,
+    AdversaryConfig,
+    ConstraintConfig,
+    DistributionConfig,
+    DisturbanceConfig,
+    TrajectoryConfig,
+)
 from scg_jax.randomization import DistributionSpec
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
@@ -590,6 +596,16 @@ def test_specs_and_params_match_a_full_config():
 
     assert env.adversary_channel == "dynamics"
     np.testing.assert_allclose(np.asarray(params.adversary_scale), [0.1, 0.2], rtol=1e-6)
+
+
+def test_the_config_accepts_exactly_the_registered_safety_filters():
+    """The env layer cannot import the filter registry, so it holds the names; they are the registry's, in order."""
+    assert SAFETY_FILTER_NAMES == tuple(FILTERS)
+    assert load_config({"env": {"system": "cartpole"}, "safety_filters": {"cbf": {"slope": 2.0}}}).safety_filters == {
+        "cbf": {"slope": 2.0}
+    }
+    with pytest.raises(ConfigError, match=r"^safety_filters.cfb: unknown key; allowed keys are cbf, learned_cbf"):
+        load_config({"env": {"system": "cartpole"}, "safety_filters": {"cfb": {}}})
 
 
 @pytest.mark.parametrize("path", CONFIG_FILES, ids=lambda p: p.stem)

@@ -104,10 +104,17 @@ def two_process_run(tmp_path_factory):
 
 
 def test_two_processes_complete_one_evaluation_and_write_one_result(two_process_run):
+    """Process 0 alone writes and reports; its trajectories hold every copy's 50 steps, whose rewards sum to the
+    returns in the JSON, and its table shows the JSON's RMSE."""
     folder, out, codes, outputs = two_process_run
     assert codes == [0, 0], "\n".join(outputs)
     assert sorted(p.name for p in folder.iterdir()) == ["eval.json", "eval.npz", "eval.png"]
     assert "wrote" in outputs[0] and "wrote" not in outputs[1]  # only process 0 writes
+    record = json.loads(out.read_text())
+    with np.load(folder / "eval.npz") as data:
+        assert data["reward"].shape == (50, EPISODES) and record["per_episode"]["length"] == [50] * EPISODES
+        np.testing.assert_allclose(data["reward"].sum(axis=0), record["per_episode"]["return"], rtol=1e-5)
+    assert f"{record['rmse']:.4f}" in outputs[0] and f"{record['rmse']:.4f}" not in outputs[1]
 
 
 def test_the_result_holds_every_copy_and_equals_a_single_process_run(two_process_run):

@@ -111,19 +111,38 @@ def test_jax_and_casadi_agree_at_random_points(kind, kernel):
     np.testing.assert_allclose(np.asarray(jac(z[0])), np.asarray(jax_jac), atol=1e-6)
 
 
-def test_fit_recovers_the_length_scales_of_data_drawn_from_a_known_gp():
-    """Samples of a GP with ARD length scales (0.5, 2.0) m: the fit recovers both within 25%."""
-    rng = np.random.default_rng(4)
+def _known_gp_data(seed: int, true_ls=(0.5, 2.0), s2: float = 1.0, noise: float = 1e-2):
+    """200 inputs in [-3, 3]^2 and three independent draws (one per output) of a GP with ARD length scales."""
+    rng = np.random.default_rng(seed)
     x = rng.uniform(-3, 3, (200, 2))
-    true_ls, s2, noise = np.array([0.5, 2.0]), 1.0, 1e-2
-    d2 = (((x[:, None, :] - x[None]) / true_ls) ** 2).sum(-1)
+    d2 = (((x[:, None, :] - x[None]) / np.asarray(true_ls)) ** 2).sum(-1)
     cov = s2 * np.exp(-0.5 * d2) + noise * np.eye(len(x))
-    y = np.linalg.cholesky(cov) @ rng.standard_normal((len(x), 3))  # three independent draws, one per output
-    hp, info = gp.fit_hyperparams(x, y, iterations=30)
+    return x, np.linalg.cholesky(cov) @ rng.standard_normal((len(x), 3))
+
+
+@pytest.fixture(scope="module")
+def known_gp_fit():
+    """``(hyperparams, info, compiled fits after it)`` of the fit on ``_known_gp_data(4)``, made once."""
+    hp, info = gp.fit_hyperparams(*_known_gp_data(4), iterations=30)
+    return hp, info, gp._fit_standardised._cache_size()
+
+
+def test_fit_recovers_the_length_scales_of_data_drawn_from_a_known_gp(known_gp_fit):
+    """Samples of a GP with ARD length scales (0.5, 2.0) m: the fit recovers both within 25%."""
+    hp, info, _ = known_gp_fit
     assert info["nll_final"] < info["nll_initial"]
-    ls = np.asarray(hp.length_scales)
-    np.testing.assert_allclose(ls, np.tile(true_ls, (3, 1)), rtol=0.25)
-    np.testing.assert_allclose(np.asarray(hp.noise_var), noise, rtol=0.5)
+    np.testing.assert_allclose(np.asarray(hp.length_scales), np.tile([0.5, 2.0], (3, 1)), rtol=0.25)
+    np.testing.assert_allclose(np.asarray(hp.noise_var), 1e-2, rtol=0.5)
+
+
+def test_a_fit_on_new_data_of_the_same_shape_reuses_the_compiled_fit(known_gp_fit):
+    """The data are arguments of the compiled fit: a fit on new data of the same shapes (a GP-MPC round) does not
+    trace again, and finds the new data's length scales, not the old ones."""
+    _, _, compiled = known_gp_fit
+    hp, info = gp.fit_hyperparams(*_known_gp_data(5, true_ls=(2.0, 0.5)), iterations=30)
+    assert gp._fit_standardised._cache_size() == compiled
+    assert info["nll_final"] < info["nll_initial"]
+    np.testing.assert_allclose(np.asarray(hp.length_scales), np.tile([2.0, 0.5], (3, 1)), rtol=0.25)
 
 
 def test_bad_input_names_the_field():

@@ -68,8 +68,27 @@ def test_registered_ids(env_id):
 
 @pytest.mark.parametrize("env_id", IDS)
 def test_check_env(env_id):
+    """Gymnasium's ``check_env`` passes, and after it a seeded episode of zero actions (hover thrust, zero force) is
+    the functional env's: the same end (step and flags) and the same return to 1e-5."""
     env = gymnasium.make(env_id, **SHORT)
     _check_env_quietly(env.unwrapped, skip_render_check=True)
+    fenv, params = env.unwrapped.functional_env, env.unwrapped.params
+    reset, step, _ = _vmapped(fenv)
+    env.reset(seed=7)
+    _, state = reset(jax.random.key(7)[None], params)
+    returns, end = [0.0, 0.0], None
+    for k in range(1, fenv.num_steps + 1):
+        _, reward, terminated, truncated, _ = env.step(np.zeros(fenv.nu, np.float32))
+        out = step(state, jnp.zeros((1, fenv.nu)), params)
+        state = out.state
+        returns[0] += float(reward)
+        returns[1] += float(out.reward[0])
+        assert (terminated, truncated) == (bool(out.terminated[0]), bool(out.truncated[0]))
+        if terminated or truncated:
+            end = k
+            break
+    assert end is not None and 0.0 < returns[0] <= end  # the exponential reward is in (0, 1] per step
+    assert returns[0] == pytest.approx(returns[1], rel=1e-5)
 
 
 def test_check_env_with_constraints_disturbances_randomization():

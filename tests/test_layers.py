@@ -7,8 +7,16 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
-ABOVE_ENV = {"scg_algorithms", "scg_cli", "algorithms", "cli"}
+# Each layer's folder and the packages it must not import: cli -> experiments -> algorithms -> scg_jax.
+LAYERS = {
+    "scg_jax": {"scg_algorithms", "scg_experiments", "scg_cli", "algorithms", "experiments", "cli"},
+    "algorithms": {"scg_experiments", "scg_cli", "experiments", "cli"},
+    "experiments": {"scg_cli", "cli"},
+}
+TERMINAL_UI = {"rich"}  # only the command line draws
 
 
 def _imported_modules(path: Path) -> set[str]:
@@ -22,22 +30,37 @@ def _imported_modules(path: Path) -> set[str]:
     return names
 
 
-def test_env_package_imports_nothing_above_it():
-    offenders = {
-        str(path.relative_to(ROOT)): sorted(_imported_modules(path) & ABOVE_ENV)
-        for path in sorted((ROOT / "scg_jax").rglob("*.py"))
-        if _imported_modules(path) & ABOVE_ENV
-    }
-    assert offenders == {}
+def _offenders(folder: str, forbidden: set[str]) -> dict[str, list[str]]:
+    found = {str(path.relative_to(ROOT)): sorted(_imported_modules(path) & forbidden)
+             for path in sorted((ROOT / folder).rglob("*.py"))}  # fmt: skip
+    return {path: names for path, names in found.items() if names}
 
 
-def test_algorithms_do_not_import_the_cli():
-    offenders = [
-        str(path.relative_to(ROOT))
-        for path in sorted((ROOT / "algorithms").rglob("*.py"))
-        if _imported_modules(path) & {"scg_cli", "cli"}
-    ]
-    assert offenders == []
+@pytest.mark.parametrize("folder", LAYERS)
+def test_each_layer_imports_nothing_above_it(folder):
+    assert _offenders(folder, LAYERS[folder]) == {}
+
+
+@pytest.mark.parametrize("folder", LAYERS)
+def test_only_the_command_line_imports_a_terminal_ui(folder):
+    assert _offenders(folder, TERMINAL_UI) == {}
+
+
+def test_the_layer_checks_see_the_imports_they_forbid(tmp_path):
+    """The AST scan finds top-level, aliased, dotted and function-local imports (a check that sees nothing passes)."""
+    source = tmp_path / "sample.py"
+    source.write_text("import rich.console as c\nfrom scg_cli.train import x\ndef f():\n    import scg_experiments\n")
+    assert _imported_modules(source) == {"rich", "scg_cli", "scg_experiments"}
+    assert _offenders("cli", TERMINAL_UI)  # the CLI does draw with rich
+
+
+def test_importing_the_library_loads_no_terminal_ui_and_nothing_above():
+    code = (
+        "import sys, scg_jax, scg_algorithms, scg_experiments, scg_algorithms.runs, scg_algorithms.evaluation; "
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in {'rich', 'scg_cli'}))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
+    assert out.stdout.strip() == "[]"
 
 
 def test_importing_the_env_package_loads_no_algorithm():

@@ -201,6 +201,75 @@ def test_ppo_loss_is_the_weighted_sum_and_the_entropy_bonus_raises_log_std():
     np.testing.assert_allclose(grad, [-0.01, -0.01], rtol=1e-5)
 
 
+# --------------------------------------------------------------------------------------------- weighted losses
+def test_weighted_clipped_surrogate_worked_numbers_and_gradient():
+    # The samples of test_clipped_surrogate_worked_numbers_and_gradient, weights (1, 0, 1, 0, 1): the terms of the
+    # kept samples are 2.4 (clipped), 1.0 and 1.1, so L = -(2.4 + 1.0 + 1.1) / 3 = -1.5; dL/dlog_prob_i is
+    # -rho_i A_i / 3 for a kept, unclipped sample (-1/3, -1.1/3) and 0 for every other one.
+    rho = np.array([1.5, 1.5, 0.5, 0.5, 1.1])
+    advantages = jnp.array([2.0, -2.0, 2.0, -2.0, 1.0])
+    old_log_prob = jnp.array([-1.0, 0.3, 2.0, -0.7, 0.0])
+    log_prob = old_log_prob + jnp.log(jnp.asarray(rho, jnp.float32))
+    weight = jnp.array([1.0, 0.0, 1.0, 0.0, 1.0])
+    (loss, info), grad = jax.value_and_grad(losses.clipped_surrogate_loss, has_aux=True)(
+        log_prob, old_log_prob, advantages, 0.2, weight
+    )
+    np.testing.assert_allclose(loss, -1.5, rtol=1e-6)
+    np.testing.assert_allclose(grad, [0.0, 0.0, -1.0 / 3.0, 0.0, -1.1 / 3.0], atol=1e-6)
+    np.testing.assert_allclose(info["clip_fraction"], 2.0 / 3.0, rtol=1e-6)  # samples 0 and 2 of the kept three
+    # Weighted advantage normalisation: mean and std of the kept (2, 2, 1) are 5/3 and sqrt(2)/3.
+    np.testing.assert_allclose(
+        losses.normalize_advantages(advantages, weight=weight)[jnp.array([0, 2, 4])],
+        (np.array([2.0, 2.0, 1.0]) - 5.0 / 3.0) / (math.sqrt(2.0) / 3.0),
+        rtol=1e-5,
+    )
+
+
+def _loss_batch(key, n=12, d=2):
+    k = jax.random.split(key, 7)
+    mean, actions = jax.random.normal(k[0], (n, d)), jax.random.normal(k[1], (n, d))
+    values, old_values, returns = (jax.random.normal(k[i], (n,)) for i in (2, 3, 4))
+    advantages, old_log_prob = jax.random.normal(k[5], (n,)), -2.0 + 0.1 * jax.random.normal(k[6], (n,))
+    return mean, jnp.array([-0.3, 0.2]), values, actions, old_log_prob, old_values, advantages, returns
+
+
+LOSS_OPTIONS = {"clip_eps": 0.2, "value_clip_eps": 0.3, "vf_coef": 0.5, "ent_coef": 0.01}
+
+
+def test_weights_of_one_give_the_unweighted_loss_and_zero_one_weights_the_loss_of_the_subset():
+    batch = _loss_batch(jax.random.key(3))
+    weighted = jax.jit(lambda weight, *b: losses.ppo_loss(*b, **LOSS_OPTIONS, weight=weight))
+    unweighted = jax.jit(lambda *b: losses.ppo_loss(*b, **LOSS_OPTIONS))
+    ones, reference = weighted(jnp.ones(12), *batch), unweighted(*batch)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-8), ones, reference)
+
+    weight = jnp.array([1, 0, 1, 1, 0, 0, 1, 1, 0, 1, 0, 1], jnp.float32)
+    keep = np.asarray(weight, bool)
+    subset = [batch[0][keep], batch[1], *(x[keep] for x in batch[2:])]
+    # With weights, the advantages are normalised with the weighted mean and std: those of the subset.
+    subset[6] = losses.normalize_advantages(subset[6])
+    masked = list(batch)
+    masked[6] = losses.normalize_advantages(batch[6], weight=weight)
+    loss, info = weighted(weight, *masked)
+    ref_loss, ref_info = unweighted(*subset)
+    np.testing.assert_allclose(loss, ref_loss, rtol=1e-5)
+    for name in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction"):
+        np.testing.assert_allclose(info[name], ref_info[name], rtol=1e-5, atol=1e-7)
+
+
+def test_all_zero_weights_give_zero_loss_and_zero_gradient():
+    """An adversary that drove no copy in a minibatch: its loss, and its gradient (entropy bonus included), are 0."""
+    mean, log_std, values, *rest = _loss_batch(jax.random.key(4))
+
+    def loss(mean, log_std, values):
+        return losses.ppo_loss(mean, log_std, values, *rest, **LOSS_OPTIONS, weight=jnp.zeros(12))[0]
+
+    value, grads = jax.value_and_grad(loss, argnums=(0, 1, 2))(mean, log_std, values)
+    assert float(value) == 0.0
+    for grad in grads:
+        np.testing.assert_array_equal(grad, 0.0)
+
+
 # --------------------------------------------------------------------------------------------- config
 @pytest.mark.parametrize(
     ("options", "field", "message"),
@@ -231,9 +300,15 @@ def test_a_config_built_directly_is_checked_too(cartpole):
     env, _ = cartpole
     with pytest.raises(ValueError, match=r"^training\.ppo\.num_minibatches: "):
         make_train(Config(num_envs=8, rollout_length=16, total_env_steps=1024, num_minibatches=3), env)
-    learner = make_learner(Config(num_envs=8, rollout_length=16, total_env_steps=1000, num_minibatches=4), env)
+    # The fields' own checks too (declared with option(check=...)), and their conversions: layer sizes are ints.
+    with pytest.raises(ValueError, match=r"^training\.ppo\.gamma: must be in \[0, 1\], got 1\.5"):
+        make_learner(Config(gamma=1.5), env)
+    with pytest.raises(ValueError, match=r"^training\.ppo\.critic_hidden: expected integers, got \[64\.5\]"):
+        make_learner(Config(critic_hidden=(64.5,)), env)
+    config = Config(num_envs=8, rollout_length=16, total_env_steps=1000, num_minibatches=4, actor_hidden=[32.0, 16])
+    learner = make_learner(config, env)
     assert learner.num_iterations == 7  # 1000 // 128: the remainder of the budget is not run
-    assert learner.config.actor_hidden == (64, 64) and all(isinstance(h, int) for h in learner.config.actor_hidden)
+    assert learner.config.actor_hidden == (32, 16) and all(isinstance(h, int) for h in learner.config.actor_hidden)
 
 
 # --------------------------------------------------------------------------------------------- whole runs
@@ -259,13 +334,25 @@ def test_vmapped_seeds_give_different_policies_and_a_repeated_seed_the_same(seed
     assert np.all(np.isfinite(metrics["loss"]))
 
 
-def test_training_moves_the_policy(cartpole, seeds_run):
+def test_training_moves_the_policy_by_adams_first_step(cartpole, seeds_run):
+    """An iteration of TINY is one Adam step (one epoch of one minibatch). Adam's first step moves each parameter by
+    ``lr g / (|g| + eps)`` (its moments are ``g`` and ``g^2`` after bias correction), so by at most the step size
+    ``lr = 1e-3`` (the decay starts after it), and by ``lr`` to within 2% wherever ``|g| >= 50 eps = 5e-4``: the
+    policy's output layer, and the state-independent ``log_std``, whose gradient sums over the whole batch (to
+    within 0.1%). (The hidden layers' gradients pass through the output layer's 0.01-scale initial weights and are
+    smaller.)"""
     env, params = cartpole
-    keys, (state, _), _ = seeds_run
+    keys, _, _ = seeds_run
     learner = make_learner(TINY, env)
-    initial = jax.jit(jax.vmap(learner.init, in_axes=(0, None)))(keys, params)
-    for a, b in zip(jax.tree.leaves(initial.params), jax.tree.leaves(state.params), strict=True):
-        assert float(np.max(np.abs(a - b))) > 1e-5
+    initial = learner.init(keys[0], params)
+    after, _ = jax.jit(learner.update)(initial, params)
+    step = jax.tree.map(lambda a, b: np.abs(np.asarray(b) - np.asarray(a)), initial.params, after.params)
+    every = np.concatenate([np.ravel(x) for x in jax.tree.leaves(step)])
+    assert every.max() <= 1e-3 + 1e-6  # float32 rounding of the parameters is about 1e-7
+    np.testing.assert_allclose(step["log_std"], 1e-3, rtol=1e-3)
+    output_layer = step["actor"]["params"][sorted(step["actor"]["params"])[-1]]
+    for leaf in jax.tree.leaves(output_layer):
+        np.testing.assert_allclose(leaf, 1e-3, rtol=2e-2)
 
 
 def test_rollout_log_probs_are_recomputed_exactly(seeds_run):

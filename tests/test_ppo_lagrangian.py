@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from scg_algorithms import ppo
+from scg_algorithms.base import parse_options
 from scg_algorithms.ppo_lagrangian import Config, combine_advantages, make_learner, multiplier_update
 from scg_algorithms.ppo_lagrangian.train import (
     center_advantages,
@@ -14,7 +15,6 @@ from scg_algorithms.ppo_lagrangian.train import (
     multiplier_adam_update,
     multiplier_optimizer,
 )
-from scg_algorithms.rl.config import parse_learner_config
 from scg_jax.config import load_config, make_from_config
 from tests.rl_helpers import tiny_ppo
 
@@ -68,7 +68,7 @@ def test_cost_advantage_worked_numbers():
     #       = (-0.25, 0.75, 0.5, -0.25);  A_3 = -0.25;  A_2 = 0.5 (episode end);  A_1 = 0.75 + 0.25 * 0.5 = 0.875;
     # A_0 = -0.25 + 0.25 * 0.875 = -0.03125; targets A + 0.5.
     options = {"cost_gamma": 0.5, "cost_gae_lambda": 0.5, "termination_cost": "none"}
-    config = parse_learner_config(Config, options, "training.ppo_lagrangian")
+    config = parse_options(Config, options, "training.ppo_lagrangian")
     values = jnp.full(4, 0.5)
     terminated = jnp.array([False, False, True, False])
     adv, targets = cost_gae(jnp.array([0.0, 1.0, 1.0, 0.0]), values, values, terminated, jnp.zeros(4, bool), config)
@@ -76,7 +76,7 @@ def test_cost_advantage_worked_numbers():
     np.testing.assert_allclose(targets, [0.46875, 1.375, 1.0, 0.25], rtol=1e-6)
     # Absorbing termination: the terminating step (cost 1) is followed by cost 1 forever, worth 1 / (1 - 0.5) = 2:
     # delta_2 = 1 + 0.5 * 2 - 0.5 = 1.5 = A_2;  A_1 = 0.75 + 0.25 * 1.5 = 1.125;  A_0 = -0.25 + 0.25 * 1.125 = 0.03125.
-    config = parse_learner_config(Config, {**options, "termination_cost": "absorbing"}, "training.ppo_lagrangian")
+    config = parse_options(Config, {**options, "termination_cost": "absorbing"}, "training.ppo_lagrangian")
     adv, _ = cost_gae(jnp.array([0.0, 1.0, 1.0, 0.0]), values, values, terminated, jnp.zeros(4, bool), config)
     np.testing.assert_allclose(adv, [0.03125, 1.125, 1.5, -0.25], rtol=1e-6)
 

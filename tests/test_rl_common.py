@@ -4,6 +4,7 @@ env's episode bookkeeping, the collector, exact step counters, and ``run_trainin
 
 import csv
 import json
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -13,9 +14,11 @@ from flax import serialization
 
 import scg_jax
 from scg_algorithms.ppo import make_learner
+from scg_algorithms.progress import Progress
 from scg_algorithms.rl.checkpoint import load_checkpoint, load_metadata, save_checkpoint
 from scg_algorithms.rl.collector import ActOutput, collect, init_collector
 from scg_algorithms.rl.counter import Count, add_count, count_at_least, count_to_float, count_value, zero_count
+from scg_algorithms.rl.curves import rmse_label
 from scg_algorithms.rl.envs import (
     episode_means,
     init_episode_stats,
@@ -26,7 +29,7 @@ from scg_algorithms.rl.envs import (
 )
 from scg_algorithms.rl.normalization import RunningStats, init_stats, normalize, update_stats
 from scg_algorithms.rl.policy import load_policy, trained_system
-from scg_algorithms.rl.training import TrainingInterrupted, rmse_label, run_training
+from scg_algorithms.rl.training import TrainingInterrupted, run_training
 from scg_algorithms.sac import make_learner as sac_make_learner
 from scg_algorithms.sac.replay import ReplayBuffer
 from tests.rl_helpers import tiny_ppo
@@ -248,11 +251,11 @@ def resume_runs(tmp_path_factory):
     params, key = env.default_params, jax.random.key(11)
     learner = make_learner(TINY_PPO, env)
     whole_dir, split_dir = tmp_path_factory.mktemp("whole"), tmp_path_factory.mktemp("split")
-    whole = run_training(learner, env, params, key, whole_dir, progress=False)
+    whole = run_training(learner, env, params, key, whole_dir)
     half = learner._replace(num_iterations=ITERATIONS // 2)
-    first = run_training(half, env, params, key, split_dir, chunk=2, progress=False)
+    first = run_training(half, env, params, key, split_dir, chunk=2)
     first_checkpoint = json.loads((split_dir / "checkpoint.json").read_text())
-    second = run_training(learner, env, params, key, split_dir, chunk=2, resume=True, progress=False)
+    second = run_training(learner, env, params, key, split_dir, chunk=2, resume=True)
     return env, params, key, learner, (whole_dir, whole), (split_dir, first, first_checkpoint, second)
 
 
@@ -284,34 +287,55 @@ def test_resume_with_another_config_is_refused(resume_runs, tmp_path):
     env, params, key, _, _, (split_dir, *_) = resume_runs
     other = make_learner({**TINY_PPO, "learning_rate": 3e-4}, env)
     with pytest.raises(ValueError, match="resume: .*checkpoint.json was written by 'ppo' with another config"):
-        run_training(other, env, params, key, split_dir, resume=True, progress=False)
+        run_training(other, env, params, key, split_dir, resume=True)
 
 
 def test_resume_with_another_config_names_the_settings_that_differ(resume_runs):
     env, params, key, _, _, (split_dir, *_) = resume_runs
     other = make_learner({**TINY_PPO, "learning_rate": 3e-4, "num_epochs": 3}, env)
     with pytest.raises(ValueError) as error:
-        run_training(other, env, params, key, split_dir, resume=True, progress=False)
+        run_training(other, env, params, key, split_dir, resume=True)
     message = str(error.value)
     assert "learning_rate: 0.001 in the checkpoint, 0.0003 now" in message
     assert "num_epochs: 2 in the checkpoint, 3 now" in message
     assert "total_env_steps:" not in message  # the same budget: not listed
 
 
+def test_resume_of_a_checkpoint_older_than_an_option_counts_it_at_its_default(resume_runs, tmp_path):
+    """A field added to a learner after a checkpoint was written (absent from its saved config) counts at its
+    default: the run resumes when the current value is the default, and is refused, naming it, when not."""
+    env, params, key, learner, _, (split_dir, *_) = resume_runs
+    old = tmp_path / "old"
+    shutil.copytree(split_dir, old)
+    meta = json.loads((old / "checkpoint.json").read_text())
+    assert meta["config"].pop("ent_coef") == 0.0
+    (old / "checkpoint.json").write_text(json.dumps(meta))
+    resumed = run_training(learner, env, params, key, old, resume=True)
+    assert resumed["resumed_from_iteration"] == ITERATIONS and resumed["iterations"] == ITERATIONS
+    other = make_learner({**TINY_PPO, "ent_coef": 0.01}, env)
+    with pytest.raises(ValueError, match=r"ent_coef: 0\.0 in the checkpoint, 0\.01 now"):
+        run_training(other, env, params, key, old, resume=True)
+
+
 def test_resume_of_another_algorithm_says_so(resume_runs):
     env, params, key, _, _, (split_dir, *_) = resume_runs
     sac = sac_make_learner({"num_envs": 8, "total_env_steps": 64, "batch_size": 16, "buffer_size": 64}, env)
-    with pytest.raises(ValueError, match=r"^resume: .*checkpoint.json is a 'ppo' run, not 'sac'; resume it with algo"):
-        run_training(sac, env, params, key, split_dir, resume=True, progress=False)
+    with pytest.raises(
+        ValueError, match=r"^resume: .* holds a ppo run, not sac; resume it with algo ppo, or train sac"
+    ):
+        run_training(sac, env, params, key, split_dir, resume=True)
 
 
 def test_a_folder_holding_a_run_is_refused_unless_resume_or_overwrite(resume_runs, tmp_path):
     env, params, key, learner, (whole_dir, _), _ = resume_runs
     before = {name: (whole_dir / name).read_bytes() for name in ("checkpoint.json", "policy.msgpack")}
-    with pytest.raises(ValueError, match=r"^out_dir: .* already holds a training run \(checkpoint.json, .*use resume"):
-        run_training(learner, env, params, key, whole_dir, progress=False)
+    with pytest.raises(
+        ValueError,
+        match=r"^out_dir: .* already holds a training run \(checkpoint.json, .*pass resume=True to continue it",
+    ):
+        run_training(learner, env, params, key, whole_dir)
     with pytest.raises(ValueError, match="^resume, overwrite: give one of them"):
-        run_training(learner, env, params, key, whole_dir, resume=True, overwrite=True, progress=False)
+        run_training(learner, env, params, key, whole_dir, resume=True, overwrite=True)
     # Nothing was touched by the refusals.
     assert before == {name: (whole_dir / name).read_bytes() for name in before}
     # overwrite replaces the run: a shorter run leaves only its own files (no stale metrics.json, 3 CSV rows).
@@ -322,7 +346,7 @@ def test_a_folder_holding_a_run_is_refused_unless_resume_or_overwrite(resume_run
     (copy / "metrics.json").write_text("{}")
     (copy / "notes.txt").write_text("mine")
     half = learner._replace(num_iterations=ITERATIONS // 2)
-    result = run_training(half, env, params, key, copy, overwrite=True, progress=False)
+    result = run_training(half, env, params, key, copy, overwrite=True)
     assert result["iterations"] == 3 and not (copy / "metrics.json").exists()
     assert (copy / "notes.txt").read_text() == "mine"  # only the run's own files are removed
     assert len(_read_csv(copy / "progress.csv")[1]) == 3
@@ -330,28 +354,32 @@ def test_a_folder_holding_a_run_is_refused_unless_resume_or_overwrite(resume_run
 
 def test_interrupt_saves_a_checkpoint_and_the_resumed_run_is_bit_identical(resume_runs, tmp_path, capsys):
     """Ctrl-C (a KeyboardInterrupt raised after the second iteration) saves that iteration although no checkpoint
-    was due (the time-based interval is an hour); resuming completes the run bit-identically. Progress printed
-    to a pipe (not a terminal) is a plain line per interval (0 s here: every chunk)."""
+    was due (the time-based interval is an hour); resuming completes the run bit-identically. The progress callbacks
+    see the compilation, then each iteration in order with its env steps, and both tasks end; nothing is printed."""
     env, params, key, learner, (whole_dir, _), _ = resume_runs
     out = tmp_path / "interrupted"
+    events = []
 
     def interrupt(iteration):
         if iteration == 2:
             raise KeyboardInterrupt
 
+    progress = Progress(start=lambda task: events.append(("start", task.name, task.total, task.completed)),
+                        update=lambda done, info: events.append(("update", done, info["env_steps"])),
+                        done=lambda: events.append(("done",)))  # fmt: skip
     with pytest.raises(TrainingInterrupted) as stop:
         run_training(
-            learner, env, params, key, out, chunk=1, checkpoint_seconds=3600.0, progress_seconds=0.0, on_chunk=interrupt
+            learner, env, params, key, out, chunk=1, checkpoint_seconds=3600.0, progress=progress, on_chunk=interrupt
         )
     assert stop.value.iteration == 2 and stop.value.checkpoint == out / "checkpoint.msgpack"
     assert load_metadata(out, "checkpoint")["iteration"] == 2
     assert [row[0] for row in _read_csv(out / "progress.csv")[1]] == ["1", "2"]
     assert not (out / "policy.json").exists()
-    lines = capsys.readouterr().out.strip().splitlines()
-    assert lines[0].startswith("ppo: iteration 1/6 (16.7%), 128 env steps, ") and "remaining" in lines[0]
-    assert lines[1].startswith("ppo: iteration 2/6 (33.3%), 256 env steps, ")
+    assert events == [("start", "compiling ppo", None, 0), ("done",), ("start", "ppo", 6, 0), ("update", 1, 128),
+                      ("update", 2, 256), ("done",)]  # fmt: skip
+    assert capsys.readouterr() == ("", "")
 
-    result = run_training(learner, env, params, key, out, resume=True, progress=False)
+    result = run_training(learner, env, params, key, out, resume=True)
     assert result["resumed_from_iteration"] == 2 and result["iterations"] == ITERATIONS
     assert (out / "policy.msgpack").read_bytes() == (whole_dir / "policy.msgpack").read_bytes()
     drop_time = lambda rows: [row[:2] + row[3:] for row in rows]  # noqa: E731
@@ -366,15 +394,15 @@ def test_a_finished_run_is_extended_by_raising_the_budget(tmp_path):
     options = {**TINY_PPO, "lr_decay": False, "num_epochs": 1}
     short = make_learner({**options, "total_env_steps": 256}, env)
     long = make_learner({**options, "total_env_steps": 512}, env)
-    run_training(short, env, params, key, tmp_path / "split", progress=False)
-    extended = run_training(long, env, params, key, tmp_path / "split", resume=True, progress=False)
-    whole = run_training(long, env, params, key, tmp_path / "whole", progress=False)
+    run_training(short, env, params, key, tmp_path / "split")
+    extended = run_training(long, env, params, key, tmp_path / "split", resume=True)
+    whole = run_training(long, env, params, key, tmp_path / "whole")
     assert extended["resumed_from_iteration"] == 2 and extended["iterations"] == whole["iterations"] == 4
     assert extended["env_steps"] == 512
     assert (tmp_path / "split" / "policy.msgpack").read_bytes() == (tmp_path / "whole" / "policy.msgpack").read_bytes()
     tiny = make_learner({**options, "total_env_steps": 128}, env)
     with pytest.raises(ValueError, match=r"is at iteration 4 \(512 env steps\), beyond this budget of 1 iterations"):
-        run_training(tiny, env, params, key, tmp_path / "split", resume=True, progress=False)
+        run_training(tiny, env, params, key, tmp_path / "split", resume=True)
 
 
 def test_learning_curve_has_nan_before_the_first_episode_ends(resume_runs):
@@ -456,7 +484,8 @@ def test_collector_records_what_every_learner_needs():
         state = init_collector(train_env, key, params)
         return collect(train_env, params, state, act, jax.random.key(1), 6, info_keys=("constraint_values",))
 
-    state, steps, episode = run(jax.random.key(0))
+    state, steps, episode, labels = run(jax.random.key(0))
+    assert labels is None and "label" not in steps.extras
     assert steps.obs.shape == (6, 4, 4) and steps.action.shape == (6, 4, 1) and steps.adversary is None
     np.testing.assert_allclose(steps.extras["obs_sum"], np.sum(steps.obs, axis=-1), rtol=1e-6)
     # Force 0.3 * 10 N = 3 N against a 0.5 N bound: every step violates, cost 1.
@@ -488,6 +517,6 @@ def test_collector_passes_the_adversary_input_to_the_env():
         state = init_collector(train_env, key, params)
         return collect(train_env, params, state, act, jax.random.key(1), 4, info_keys=("u",))
 
-    _, steps, _ = run(jax.random.key(0))
+    steps = run(jax.random.key(0)).transitions
     np.testing.assert_allclose(steps.info["u"], 2.0, rtol=1e-6)
     np.testing.assert_array_equal(steps.adversary, 1.5)

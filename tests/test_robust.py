@@ -1,7 +1,9 @@
-"""RARL and RAP (scg_algorithms.robust): the adversary's reward sign, the per-copy adversary assignment, the masked
-PPO loss, the alternating schedule, bad input, and a tiny training run of each learner through run_training."""
+"""RARL and RAP (scg_algorithms.robust): the adversary's reward sign, the per-copy adversary assignment, the
+alternating schedule, RARL as RAP with one adversary, bad input, and a tiny training run of each learner through
+run_training. (The adversaries' weighted PPO loss is tested with PPO's losses, tests/test_ppo.py.)"""
 
 import csv
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -44,35 +46,6 @@ def test_adversary_reward_is_minus_the_protagonists_and_so_are_its_advantages():
     np.testing.assert_allclose(ret_a, -np.asarray(ret_p))
 
 
-def test_masked_ppo_loss_is_ppo_loss_on_the_weighted_samples():
-    key = jax.random.key(3)
-    k = jax.random.split(key, 7)
-    n, d = 12, 2
-    mean, actions = jax.random.normal(k[0], (n, d)), jax.random.normal(k[1], (n, d))
-    log_std = jnp.array([-0.3, 0.2])
-    values, old_values, returns = (jax.random.normal(k[i], (n,)) for i in (2, 3, 4))
-    advantages, old_log_prob = jax.random.normal(k[5], (n,)), -2.0 + 0.1 * jax.random.normal(k[6], (n,))
-    weight = jnp.array([1, 0, 1, 1, 0, 0, 1, 1, 0, 1, 0, 1], jnp.float32)
-    kw = dict(clip_eps=0.2, vf_coef=0.5, ent_coef=0.01)
-    masked_loss = jax.jit(adversarial.masked_ppo_loss, static_argnames=("clip_eps", "vf_coef", "ent_coef", "normalize"))
-    masked, info = masked_loss(
-        mean, log_std, values, actions, old_log_prob, old_values, advantages, returns, weight, normalize=True, **kw
-    )
-    keep = np.asarray(weight, bool)
-    ppo_loss = jax.jit(losses.ppo_loss, static_argnames=("clip_eps", "value_clip_eps", "vf_coef", "ent_coef"))
-    ref, ref_info = ppo_loss(
-        mean[keep], log_std, values[keep], actions[keep], old_log_prob[keep], old_values[keep],
-        losses.normalize_advantages(advantages[keep]), returns[keep], value_clip_eps=None, **kw,
-    )  # fmt: skip
-    np.testing.assert_allclose(masked, ref, rtol=1e-5)
-    for name in ("policy_loss", "value_loss", "approx_kl", "clip_fraction"):
-        np.testing.assert_allclose(info[name], ref_info[name], rtol=1e-5, atol=1e-7)
-    none, _ = masked_loss(
-        mean, log_std, values, actions, old_log_prob, old_values, advantages, returns, 0 * weight, normalize=True, **kw
-    )
-    assert float(none) == 0.0
-
-
 def test_alternating_schedule_cycles_protagonist_then_adversary_iterations():
     config = rarl.Config(protagonist_iterations=2, adversary_iterations=3)
     flags = [tuple(bool(f) for f in adversarial.update_flags(jnp.int32(i), config)) for i in range(10)]
@@ -83,6 +56,18 @@ def test_alternating_schedule_cycles_protagonist_then_adversary_iterations():
     assert all(bool(f) for f in adversarial.update_flags(jnp.int32(7), joint))
     assert adversarial.update_counts(rarl.Config(total_env_steps=16384 * 10, protagonist_iterations=2,
                                                  adversary_iterations=3)) == (4, 6)  # fmt: skip
+
+
+def test_rarl_is_rap_with_one_adversary_and_the_alternating_schedule():
+    """One option declaration: RARL's options are RAP's with other defaults, and parse to the same values."""
+    env = scg_jax.make("cartpole", adversary={"channel": "action"})
+    options = {"num_envs": 8, "rollout_length": 16, "total_env_steps": 128, "adversary_hidden": [8]}
+    rarl_config = rarl.make_learner(options, env).config
+    rap_config = rap.make_learner({**options, "num_adversaries": 1, "schedule": "alternating"}, env).config
+    assert dataclasses.asdict(rarl_config) == dataclasses.asdict(rap_config)
+    assert (rarl.Config().num_adversaries, rarl.Config().schedule) == (1, "alternating")
+    assert (rap.Config().num_adversaries, rap.Config().schedule) == (2, "joint")
+    assert rarl_config.adversary_hidden == (8,) and isinstance(rarl_config.adversary_hidden[0], int)
 
 
 def test_assign_adversaries_redraws_only_where_an_episode_ended():
@@ -103,8 +88,8 @@ def test_each_copy_is_driven_by_its_own_adversary_for_a_whole_episode():
     env = scg_jax.make("cartpole", **ENV_OPTIONS, adversary={"channel": "action", "scale": scale})
     params = env.default_params
     config = rap.Config(total_env_steps=32 * 50, num_adversaries=3, **{**TINY, "rollout_length": 50})
-    fns = adversarial.make_functions(config, env, 3, "rap")
-    runner = jax.jit(fns.init)(jax.random.key(0), params)
+    game = adversarial.make_game(config, env, "rap")
+    runner = jax.jit(lambda key: adversarial.init(game, key, params))(jax.random.key(0))
     pushes = jnp.array([0.3, -0.6, 0.9])
     adversaries = runner.adversaries.params
     # Zero last-layer weights and these biases: each adversary's mean is its constant; a tiny std makes it exact.
@@ -124,11 +109,11 @@ def test_each_copy_is_driven_by_its_own_adversary_for_a_whole_episode():
         protagonist=runner.protagonist._replace(params=protagonist),
         adversaries=runner.adversaries._replace(params=adversaries),
     )
-    _, final_index, traj, _ = jax.jit(lambda r, k: fns.rollout(r, params, k, info_keys=("u",)))(
+    _, traj, _, final_index = jax.jit(lambda r, k: adversarial.rollout(game, r, params, k, info_keys=("u",)))(
         runner, jax.random.key(1)
     )
     # 50 steps of 20-step episodes: every copy hands over to a fresh draw at least twice.
-    acting = np.asarray(traj.extras["adversary_index"])  # (T, N)
+    acting = np.asarray(traj.extras["label"])  # (T, N)
     u = np.asarray(traj.info["u"])[..., 0]  # (T, N) applied force, N
     np.testing.assert_allclose(u, scale * np.asarray(pushes)[acting], atol=1e-5)
     np.testing.assert_array_equal(acting[0], np.asarray(runner.adversary_index))

@@ -198,7 +198,7 @@ def test_replay_sample_returns_only_stored_items_deterministically():
         ({"warmup_steps": -1}, "warmup_steps", "must be >= 0"),
         ({"batch_size": 0.5}, "batch_size", "expected an integer"),
         ({"autotune_alpha": "yes"}, "autotune_alpha", "expected true or false"),
-        ({"activation": "sigmoid"}, "activation", "allowed values are relu"),
+        ({"activation": "sigmoid"}, "activation", "allowed values are tanh, relu"),
         ({"hidden_sizes": [16, 0]}, "hidden_sizes", "positive integers"),
         ({"log_std_min": 3.0}, "log_std_min", "below log_std_max"),
         ({"num_envs": 8, "utd": 0.3}, "utd", "must be a positive integer"),
@@ -215,7 +215,7 @@ def test_config_errors_name_the_field(cartpole, options, field, message):
 def test_config_derived_numbers_and_round_trip():
     config = parse_config(TINY)
     assert config.num_iterations == NUM_ITERATIONS and config.warmup_iterations == WARMUP_ITERATIONS
-    assert config.grad_steps_per_iteration == GRAD_STEPS and config.capacity == 400 and config.hidden == (16, 16)
+    assert config.grad_steps_per_iteration == GRAD_STEPS and config.capacity == 400 and config.hidden_sizes == (16, 16)
     assert parse_config(config.to_dict()) == config
     # The warm-up covers at least one batch and is clipped to the budget; the buffer to the budget.
     assert parse_config({"num_envs": 8, "warmup_steps": 0, "batch_size": 20}).warmup_iterations == 3

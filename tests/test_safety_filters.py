@@ -228,6 +228,9 @@ def test_bad_input_errors():
 
 
 def test_cli_eval_with_a_filter_and_bad_filter(tmp_path):
+    """The PID drives to a goal above the 1.5 m ceiling: the CBF keeps every episode below it by correcting nearly
+    every step (without the filter most steps violate it), and its per-step intervention metric is what the saved
+    trajectories show."""
     import json
 
     from scg_cli import main
@@ -238,6 +241,14 @@ def test_cli_eval_with_a_filter_and_bad_filter(tmp_path):
     assert main(args) == 0
     record = json.loads(out.read_text())
     assert record["controller"] == "pid+cbf" and record["filter"] == "cbf"
-    for name in ("intervention_fraction", "mean_correction", "infeasible_fraction"):
-        assert 0.0 <= record[name] < 10.0
+    assert record["failure_rate"] == 0.0 and record["per_episode"]["violation_steps"] == [0, 0, 0, 0]
+    assert record["infeasible_fraction"] == 0.0 and 0.9 < record["intervention_fraction"] <= 1.0
+    with np.load(out.with_suffix(".npz")) as data:
+        assert data["x"][..., 0].max() <= 1.5 + 1e-6  # altitude (m) under the ceiling at every step
+        correction = np.linalg.norm(data["filter_correction"], axis=-1)  # (T, episodes), N
+    assert record["intervention_fraction"] == pytest.approx(np.mean(correction > INTERVENTION_THRESHOLD))
+    assert record["mean_correction"] == pytest.approx(np.mean(correction), rel=1e-5) and record["mean_correction"] > 0
+    unfiltered = tmp_path / "pid.json"
+    assert main([*args[:5], "--episodes", "4", "--out", str(unfiltered)]) == 0
+    assert json.loads(unfiltered.read_text())["failure_rate"] == 1.0  # the same PID alone crosses the ceiling
     assert main(["eval", "--config", config, "--controller", "pid", "--filter", "nope", "--out", str(out)]) == 2

@@ -135,6 +135,34 @@ def test_matrices():
     assert _reason(V.matrix, [[1.0, "x"]], "A") == ("A[0][1]", "expected a finite number, got 'x'")
 
 
+def test_weight_matrices_from_a_diagonal_or_a_full_matrix():
+    np.testing.assert_array_equal(V.weight_matrix([1.0, 0.5], "Q", 2), np.diag([1.0, 0.5]))
+    full = [[2.0, 0.5], [0.5, 1.0]]
+    np.testing.assert_array_equal(V.weight_matrix(full, "Q", 2), np.array(full))
+    np.testing.assert_array_equal(V.weight_matrix((3.0, 0.0), "q", 2, diagonal_only=True), np.diag([3.0, 0.0]))
+    assert V.weight_matrix([1.0, 2.0], "Q", 2).dtype == np.float64
+    assert _reason(V.weight_matrix, [1.0, 1.0, 1.0], "Q", 2) == (
+        "Q",
+        "expected 2 diagonal values or an (2, 2) matrix, got shape (3,)",
+    )
+    assert _reason(V.weight_matrix, [[1.0, 2.0], [0.0, 1.0]], "Q", 2)[1].startswith(
+        "must be symmetric positive semidefinite"
+    )
+    assert _reason(V.weight_matrix, [-1.0], "R", 1)[1].startswith("must be symmetric positive semidefinite")
+    assert _reason(V.weight_matrix, [1.0], "c.q_diag", 2, diagonal_only=True) == (
+        "c.q_diag",
+        "expected 2 values, got 1: [1.0]",
+    )
+    assert _reason(V.weight_matrix, [[1.0, 0.0], [0.0, 1.0]], "c.q_diag", 2, diagonal_only=True) == (
+        "c.q_diag",
+        "expected 2 values, got [[1.0, 0.0], [0.0, 1.0]]",
+    )
+    assert _reason(V.weight_matrix, [1.0, -0.1], "c.q_diag", 2, diagonal_only=True) == (
+        "c.q_diag",
+        "weights must be >= 0, got [1.0, -0.1]",
+    )
+
+
 def test_show_cuts_long_values():
     assert V.show(np.arange(3)) == "[0, 1, 2]"
     assert len(V.show(list(range(100)))) == 80 and V.show(list(range(100))).endswith("...")

@@ -26,10 +26,10 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from scg_algorithms.base import parse_options
 from scg_algorithms.ppo import losses
 from scg_algorithms.ppo.train import Variant, make_variant_learner
 from scg_algorithms.ppo_lagrangian.config import Config
-from scg_algorithms.rl.config import parse_learner_config
 from scg_algorithms.rl.networks import value_network
 from scg_algorithms.rl.training import Learner
 
@@ -104,7 +104,7 @@ def make_learner(config, env) -> Learner:
     Raises:
         ValueError: a bad option, named ``training.ppo_lagrangian.<field>`` (e.g. a cost limit below 0).
     """
-    config = parse_learner_config(Config, config, PATH)
+    config = parse_options(Config, config, PATH)
     cost_critic = value_network(config.critic_hidden, config.activation)
     cost_optimizer = optax.chain(
         optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate, eps=1e-5)

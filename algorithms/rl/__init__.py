@@ -5,8 +5,10 @@
   episode statistics (return, cost, RMSE) for learning curves.
 - ``collector``: ``collect(train_env, params, state, act, key, num_steps)``, the one data collector of every learner
   (scan over the batched env, episode statistics, observation normaliser; transitions with ``cost``, ``next_obs``,
-  chosen ``info`` entries, the act function's extras and an optional adversary input).
-- ``config``: ``parse_learner_config`` and the shared field checks of the learners' ``Config``s.
+  chosen ``info`` entries, the act function's extras, an optional adversary input and optional per-copy labels).
+- ``config``: the option declarations learners share (``learner_option``, ``hidden_sizes_option``), parsed with
+  ``scg_algorithms.base.parse_options`` like every method's options.
+- ``learner``: ``make_train(learner)``, the whole run of any ``Learner`` as one pure function (jit, vmap over seeds).
 - ``counter``: ``Count``, an exact step counter past 2^31 without x64 (two uint32 words).
 - ``distributions``: the Gaussian and tanh-Gaussian log-densities, entropy and sampler.
 - ``normalization``: running observation mean/variance (parallel Welford) and ``normalize``.

@@ -20,6 +20,7 @@ cost critic / Lagrangian), ``terminated`` and ``truncated`` apart (bootstrapping
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
@@ -108,6 +109,35 @@ def init_collector(train_env: TrainEnv, key, params, dtype=None) -> CollectorSta
     )
 
 
+class CopyLabels(NamedTuple):
+    """A per-copy integer label carried through a collection (e.g. which adversary drives each copy).
+
+    Attributes:
+        index: (N,) int32, each copy's label for its next step.
+        redraw: ``redraw(key, index, done) -> index``: the labels after a step, ``done`` (N,) marking the copies
+            whose episode ended with it (e.g. a fresh draw there, the old label elsewhere).
+    """
+
+    index: Any
+    redraw: Callable
+
+
+class Collected(NamedTuple):
+    """What ``collect`` returns.
+
+    Attributes:
+        state: the new ``CollectorState``. transitions: ``Transitions`` (T, N, ...). episode: ``episode_means`` of
+        the episodes finished during the collection (``episode_return``, ``episode_cost``, ``episode_rmse``,
+        ``episode_length``, ``episodes_finished``). labels: the labels (N,) after the last step, with
+        ``CopyLabels`` (None without).
+    """
+
+    state: CollectorState
+    transitions: Transitions
+    episode: dict
+    labels: Any = None
+
+
 def collect(
     train_env: TrainEnv,
     params,
@@ -118,25 +148,33 @@ def collect(
     *,
     update_normalizer: bool = True,
     info_keys: tuple[str, ...] = (),
-) -> tuple[CollectorState, Transitions, dict]:
+    labels: CopyLabels | None = None,
+) -> Collected:
     """Scan ``num_steps`` steps of ``train_env`` under ``act``.
 
     Args:
         train_env: the ``TrainEnv`` (N copies). params: unbatched ``EnvParams``. state: ``CollectorState``.
-        act: ``act(obs (N, obs_size), key) -> ActOutput``; called once per step with that step's key (``key``
-            split ``num_steps`` ways).
+        act: ``act(obs (N, obs_size), key) -> ActOutput``, called once per step with that step's key (``key``
+            split ``num_steps`` ways); with ``labels``, ``act(obs, key, index (N,))``, ``key`` the first of the
+            step's key split in two (the second re-draws the labels).
         num_steps: T, steps per copy. update_normalizer: merge the observations acted on into ``obs_stats`` after
             the scan. info_keys: entries of the env's ``info`` to keep in ``Transitions.info``.
+        labels: ``CopyLabels`` to carry, or None; the label each step acted under is stored as
+            ``transitions.extras["label"]`` (T, N).
 
     Returns:
-        ``(state, transitions, episode)``: the new ``CollectorState``, ``Transitions`` (T, N, ...), and
-        ``episode_means`` of the episodes finished during the collection (``episode_return``, ``episode_cost``,
-        ``episode_rmse``, ``episode_length``, ``episodes_finished``).
+        ``Collected(state, transitions, episode, labels)``.
     """
 
     def step(carry, step_key):
-        env_state, obs, episode_stats = carry
-        out_act = act(obs, step_key)
+        env_state, obs, episode_stats, index = carry
+        if labels is None:
+            out_act = act(obs, step_key)
+            extras = dict(out_act.extras)
+        else:
+            key_act, key_redraw = jax.random.split(step_key)
+            out_act = act(obs, key_act, index)
+            extras = {**out_act.extras, "label": index}
         out = train_env.step(env_state, out_act.action, params, adversary=out_act.adversary)
         episode_stats, finished = update_episode_stats(episode_stats, out)
         transition = Transitions(
@@ -148,13 +186,15 @@ def collect(
             truncated=out.truncated,
             next_obs=out.final_obs,
             info={name: out.info[name] for name in info_keys},
-            extras=dict(out_act.extras),
+            extras=extras,
             adversary=out_act.adversary,
         )
-        return (out.state, out.obs.astype(obs.dtype), episode_stats), (transition, finished)
+        if labels is not None:
+            index = labels.redraw(key_redraw, index, finished.done)
+        return (out.state, out.obs.astype(obs.dtype), episode_stats, index), (transition, finished)
 
-    carry = (state.env_state, state.obs, state.episode_stats)
-    (env_state, obs, episode_stats), (transitions, finished) = jax.lax.scan(
+    carry = (state.env_state, state.obs, state.episode_stats, None if labels is None else labels.index)
+    (env_state, obs, episode_stats, index), (transitions, finished) = jax.lax.scan(
         step, carry, jax.random.split(key, num_steps)
     )
     obs_stats = update_stats(state.obs_stats, transitions.obs) if update_normalizer else state.obs_stats
@@ -166,4 +206,4 @@ def collect(
         last_episode={name: episode[name] for name in EPISODE_METRICS},
         obs_stats=obs_stats,
     )
-    return new_state, transitions, episode
+    return Collected(new_state, transitions, episode, index)

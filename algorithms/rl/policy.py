@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib
 from pathlib import Path
 
 import jax
@@ -10,26 +9,16 @@ import jax.numpy as jnp
 import yaml
 
 from scg_algorithms.base import JaxController, parse_options
+from scg_algorithms.learners import LEARNERS, learner_part
 from scg_algorithms.rl.checkpoint import load_checkpoint, load_metadata
 from scg_algorithms.rl.envs import policy_action_to_input
 from scg_algorithms.rl.training import POLICY_NAME
 
-# Learners that are a module of a shared package rather than a package ``scg_algorithms.<algo>`` of their own.
-LEARNER_MODULES = {"rarl": "scg_algorithms.robust.rarl", "rap": "scg_algorithms.robust.rap"}
-
 
 def algorithm_module(algo: str, part: str):
-    """``Config``, ``make_learner`` or ``make_policy_learner`` of the learner ``algo``: the package
-    ``scg_algorithms.<algo>`` (top level, else its submodules) or its module in ``LEARNER_MODULES``.
-    ``make_policy_learner`` (what loads a saved policy) is ``make_learner`` unless the learner defines one (an
-    adversarial learner's protagonist loads on an env without the adversary input it trained against)."""
-    package = importlib.import_module(LEARNER_MODULES.get(algo, f"scg_algorithms.{algo}"))
-    if hasattr(package, part):
-        return getattr(package, part)
-    if part == "make_policy_learner":
-        return algorithm_module(algo, "make_learner")
-    submodule = {"Config": "config", "make_learner": "train"}[part]
-    return getattr(importlib.import_module(f"scg_algorithms.{algo}.{submodule}"), part)
+    """``Config``, ``make_learner`` or ``make_policy_learner`` of the JAX learner ``algo`` in the registry
+    (``scg_algorithms.learners.learner_part``; kept under this name for its callers)."""
+    return learner_part(algo, part)
 
 
 def trained_system(meta: dict) -> str | None:
@@ -57,8 +46,12 @@ def load_learner(directory, env):
     """
     meta = load_metadata(directory, POLICY_NAME)
     algo = meta.get("algo")
-    if not isinstance(algo, str) or not algo.isidentifier():
-        raise ValueError(f"{Path(directory) / POLICY_NAME}.json: algo must name a learner package, got {algo!r}")
+    jax_learners = [name for name, spec in LEARNERS.items() if spec.is_jax]
+    if algo not in jax_learners:
+        raise ValueError(
+            f"{Path(directory) / POLICY_NAME}.json: algo must name a JAX learner ({', '.join(jax_learners)}), got "
+            f"{algo!r}"
+        )
     system = trained_system(meta)
     if system is not None and system != env.system.name:
         raise ValueError(

@@ -1,12 +1,13 @@
-"""The host driver of every JAX learner: compiled iterations in chunks, progress, CSV, checkpoints, final policy.
+"""The host driver of every JAX learner: compiled iterations in chunks, CSV, checkpoints, final policy, progress
+reported through callbacks (``scg_algorithms.progress``).
 
 A learner (``scg_algorithms.ppo.make_learner``, ``scg_algorithms.sac.make_learner``) is a ``Learner``: pure ``init`` and
 ``update`` functions over a runner state (a pytree holding everything: network and optimiser state, observation
 statistics, env states, PRNG key). ``run_training`` compiles ``update`` repeated ``n`` times inside one
 ``lax.fori_loop`` (``n`` is a traced argument, so one compilation serves every chunk length), runs chunks of about a
-second each so the progress bar moves, appends each iteration's metrics to ``progress.csv``, checkpoints the runner
-state, and saves the final policy. Because every chunk runs the same compiled iteration, the result does not depend
-on the chunking: a run resumed from a checkpoint is bit-identical to an uninterrupted one.
+second each so that progress is reported often, appends each iteration's metrics to ``progress.csv``, checkpoints
+the runner state, and saves the final policy. Because every chunk runs the same compiled iteration, the result does
+not depend on the chunking: a run resumed from a checkpoint is bit-identical to an uninterrupted one.
 
 Files written in ``out_dir``:
 
@@ -24,9 +25,8 @@ import csv as csv_lib
 import dataclasses
 import io
 import math
-import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -34,10 +34,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from scg_algorithms.base import parse_options
+from scg_algorithms.progress import SILENT, Progress, Task, as_progress, running
 from scg_algorithms.rl.checkpoint import load_checkpoint, load_metadata, save_checkpoint
 from scg_algorithms.rl.counter import Count, count_value
+from scg_algorithms.rl.curves import plot_learning_curve, rmse_label
 from scg_algorithms.rl.normalization import RunningStats
+from scg_jax import sharding
 from scg_jax.files import write_atomic
+from scg_jax.validation import FieldError
 
 CSV_NAME = "progress.csv"
 CHECKPOINT_NAME = "checkpoint"
@@ -210,57 +215,6 @@ def _format_row(iteration: int, elapsed: float, names: list[str], metrics: dict,
     return row
 
 
-def _format_seconds(seconds: float) -> str:
-    seconds = int(round(seconds))
-    hours, rest = divmod(seconds, 3600)
-    return f"{hours}:{rest // 60:02d}:{rest % 60:02d}" if hours else f"{rest // 60}:{rest % 60:02d}"
-
-
-class _Progress:
-    """Progress of a run: a rich bar on a terminal, a plain line every ``seconds`` otherwise (a log file or a pipe
-    sees output while the run goes, not only at its end), nothing when disabled."""
-
-    def __init__(self, enabled: bool, total: int, completed: int, name: str, seconds: float, stream=None):
-        self.bar, self.plain, self.total, self.name, self.seconds = None, False, total, name, seconds
-        self.stream = sys.stdout if stream is None else stream
-        self.last_print = -math.inf
-        if not enabled:
-            return
-        if not self.stream.isatty():
-            self.plain = True
-            return
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-        self.bar = Progress(
-            TextColumn(f"[bold]{name}[/bold]"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("it"),
-            TimeRemainingColumn(),
-            TextColumn("{task.fields[status]}"),
-        )
-        self.task = self.bar.add_task(name, total=total, completed=completed, status="compiling...")
-        self.bar.start()
-
-    def update(self, completed: int, status: str, elapsed: float, remaining: float) -> None:
-        if self.bar is not None:
-            self.bar.update(self.task, completed=completed, status=status)
-        elif self.plain:
-            now = time.perf_counter()
-            if now - self.last_print >= self.seconds or completed >= self.total:
-                self.last_print = now
-                line = (
-                    f"{self.name}: iteration {completed}/{self.total} ({100.0 * completed / self.total:.1f}%), "
-                    f"{status}, elapsed {_format_seconds(elapsed)}, remaining {_format_seconds(remaining)}"
-                )
-                print(line, file=self.stream, flush=True)
-
-    def stop(self) -> None:
-        if self.bar is not None:
-            self.bar.stop()
-            self.bar = None
-
-
 class TrainingInterrupted(KeyboardInterrupt):
     """``run_training`` was interrupted (Ctrl-C) and saved what it had.
 
@@ -280,6 +234,39 @@ def existing_run_files(out_dir) -> list[str]:
     """The ``RUN_FILES`` present in ``out_dir`` (empty when it holds no run or does not exist)."""
     out_dir = Path(out_dir)
     return [name for name in RUN_FILES if (out_dir / name).exists()]
+
+
+ARGUMENT_WORDS = {"algo": "algo", "out_dir": "out_dir", "resume": "resume=True", "overwrite": "overwrite=True"}
+"""How the folder rules' messages name the arguments; the command line passes its flags instead."""
+
+
+def check_run_folder(out_dir, algo: str, resume: bool, overwrite: bool, names: Mapping[str, str] | None = None) -> None:
+    """Refuse a folder that holds a run unless ``resume`` (its checkpoint is of ``algo``) or ``overwrite`` is given.
+
+    Raises:
+        FieldError: at ``resume`` (a checkpoint of another algorithm) or ``out_dir`` (a run without ``resume`` or
+            ``overwrite``, or files but no checkpoint to resume); the message names the arguments as ``names``
+            (``ARGUMENT_WORDS`` overridden).
+    """
+    words = {**ARGUMENT_WORDS, **dict(names or {})}
+    out_dir = Path(out_dir)
+    existing = existing_run_files(out_dir)
+    if resume and (out_dir / f"{CHECKPOINT_NAME}.json").exists():
+        saved = load_metadata(out_dir, CHECKPOINT_NAME).get("algo")
+        if saved != algo:
+            raise FieldError(
+                "resume",
+                f"{out_dir} holds a {saved} run, not {algo}; resume it with {words['algo']} {saved}, or train {algo} "
+                f"into another {words['out_dir']} (or replace the run with {words['overwrite']})",
+            )
+    elif existing and not overwrite:
+        what = "has no checkpoint to resume but holds" if resume else "already holds"
+        advice = (
+            f"pass {words['overwrite']} to replace it"
+            if resume
+            else f"pass {words['resume']} to continue it or {words['overwrite']} to replace it"
+        )
+        raise FieldError("out_dir", f"{out_dir} {what} a training run ({', '.join(existing)}); {advice}")
 
 
 _MISSING = object()
@@ -310,33 +297,87 @@ def _env_section(config_text: str) -> dict:
 
 
 def _check_resumable(meta: dict, checkpoint_file: Path, learner: Learner, config: dict, env_config) -> None:
-    """ValueError naming what keeps the checkpoint ``meta`` from being continued by ``learner`` with ``config``."""
-    saved_algo = meta.get("algo")
-    if saved_algo != learner.name:
-        raise ValueError(
-            f"resume: {checkpoint_file} is a {saved_algo!r} run, not {learner.name!r}; resume it with algo "
-            f"{saved_algo!r}, or train {learner.name!r} into another folder"
-        )
-    differences = config_differences(meta.get("config") or {}, config, ignore=("total_env_steps",))
+    """FieldError at ``resume`` naming what keeps the checkpoint ``meta`` (of ``learner``'s algorithm) from being
+    continued with ``config`` and ``env_config``."""
+    saved = dict(meta.get("config") or {})
+    # A field added to the learner since the checkpoint was written counts at its default, the value that
+    # reproduces the older code's behaviour (e.g. RARL's num_adversaries, always 1 before it was an option).
+    defaults = config_dict(parse_options(type(learner.config), None, f"training.{learner.name}"))
+    saved = {**{name: value for name, value in defaults.items() if name not in saved}, **saved}
+    differences = config_differences(saved, config, ignore=("total_env_steps",))
     if differences:
-        raise ValueError(
-            f"resume: {checkpoint_file} was written by {saved_algo!r} with another config: {'; '.join(differences)}. "
-            f"Use the same training.{learner.name} settings (only total_env_steps may be raised) or another folder"
+        raise FieldError(
+            "resume",
+            f"{checkpoint_file} was written by {learner.name!r} with another config: {'; '.join(differences)}. Use "
+            f"the same training.{learner.name} settings (only total_env_steps may be raised) or another folder",
         )
     saved_env, iteration = meta.get("env_config"), int(meta.get("iteration", 0))
     if saved_env is not None and env_config is not None:
         env_differences = config_differences(_env_section(saved_env), _env_section(env_config))
         if env_differences:
-            raise ValueError(
-                f"resume: {checkpoint_file} was trained on another env: "
-                f"{'; '.join('env.' + line for line in env_differences)}. Use the same env settings or another folder"
+            raise FieldError(
+                "resume",
+                f"{checkpoint_file} was trained on another env: "
+                f"{'; '.join('env.' + line for line in env_differences)}. Use the same env settings or another folder",
             )
     if iteration > learner.num_iterations:
-        raise ValueError(
-            f"resume: {checkpoint_file} is at iteration {iteration} ({meta.get('env_steps')} env steps), beyond "
-            f"this budget of {learner.num_iterations} iterations (training.{learner.name}.total_env_steps = "
-            f"{config.get('total_env_steps')}); a resumed run's budget may be raised, not set below where it stands"
+        raise FieldError(
+            "resume",
+            f"{checkpoint_file} is at iteration {iteration} ({meta.get('env_steps')} env steps), beyond this budget "
+            f"of {learner.num_iterations} iterations (training.{learner.name}.total_env_steps = "
+            f"{config.get('total_env_steps')}); a resumed run's budget may be raised, not set below where it stands",
         )
+
+
+@dataclasses.dataclass
+class _Run:
+    """Where one ``run_training`` call stands, on the host (mutable bookkeeping, not a pytree)."""
+
+    learner: Learner
+    env: Any
+    params: Any
+    out_dir: Path
+    config: dict
+    env_config: str | None
+    mesh: Any
+    distributed: bool
+    main: bool  # the one process that writes files and reports progress
+    progress: Progress
+    csv: bool
+    start: float  # perf_counter() when run_training was called
+    runner_state: Any = None
+    iteration: int = 0
+    saved_iteration: int = 0  # the iteration the checkpoint on disk holds (when resumed) or will hold
+    elapsed_before: float = 0.0  # wall time of the sessions before a resume
+    resumed_from: int | None = None
+    steps_at_start: int = 0
+    last_metrics: dict = dataclasses.field(default_factory=dict)
+    names: list = dataclasses.field(default_factory=list)  # the metric columns of progress.csv
+    compile_s: float = 0.0
+    run_start: float = 0.0  # perf_counter() after compiling
+
+    @property
+    def total(self) -> int:
+        return int(self.learner.num_iterations)
+
+    @property
+    def csv_path(self) -> Path:
+        return self.out_dir / CSV_NAME
+
+    def elapsed(self) -> float:
+        return self.elapsed_before + time.perf_counter() - self.start
+
+    def interrupted(self, iteration: int) -> TrainingInterrupted:
+        saved = self.out_dir / f"{CHECKPOINT_NAME}.msgpack"
+        return TrainingInterrupted(self.out_dir, iteration, self.total, saved if saved.exists() else None)
+
+    def save(self) -> None:
+        """``checkpoint.*`` of the current runner state (gathered over the processes; written by process 0)."""
+        state = sharding.to_host(self.runner_state) if self.distributed else self.runner_state
+        if self.main:
+            _save_runner(self.out_dir, self.learner, self.config, self.env_config, state, self.iteration,
+                         self.last_metrics, self.elapsed())  # fmt: skip
+        self.saved_iteration = self.iteration
 
 
 def run_training(
@@ -351,8 +392,7 @@ def run_training(
     checkpoint_seconds: float = 60.0,
     resume: bool = False,
     overwrite: bool = False,
-    progress: bool = True,
-    progress_seconds: float = 10.0,
+    progress=None,
     csv: bool = True,
     env_config: str | None = None,
     target_seconds_per_chunk: float = 1.0,
@@ -366,7 +406,7 @@ def run_training(
             training plant (randomisation and disturbances as configured in ``env``/``params``).
         key: PRNG key (raw or typed); the whole run is determined by it.
         out_dir: output folder (created). A folder that already holds a run (any of ``RUN_FILES``) is refused
-            unless ``resume`` or ``overwrite`` is given.
+            unless ``resume`` or ``overwrite`` is given (``check_run_folder``).
         chunk: iterations per compiled call; ``None`` adapts it so that a call takes about
             ``target_seconds_per_chunk`` (results do not depend on it).
         checkpoint_every: save ``checkpoint.msgpack/json`` every that many iterations; ``None``: every
@@ -378,7 +418,9 @@ def run_training(
             decaying step size then follows the new budget's schedule from where the run stands). Raises
             ValueError naming the settings that differ.
         overwrite: remove a previous run's files from ``out_dir`` and start afresh (excludes ``resume``).
-        progress: show progress: a rich bar on a terminal, else a plain line every ``progress_seconds``.
+        progress: a ``scg_algorithms.progress.Progress`` (or a function, its ``update``): the task
+            ``"compiling <name>"``, then the task ``<name>`` counting iterations, updated after each compiled call
+            with the last iteration's metrics plus ``steps_per_s``, ``elapsed_s`` and ``remaining_s``. None: silent.
         csv: write ``progress.csv`` and ``learning_curve.png``.
         env_config: the env configuration text (YAML) to store with the policy, so it can be rebuilt.
         on_chunk: called with the iteration count after each compiled call has been recorded (CSV rows written);
@@ -390,7 +432,7 @@ def run_training(
             (``make_mesh("all")``); every process calls ``run_training`` with the same arguments and steps the copies
             on its own devices; the metrics are gathered once per chunk, the chunk lengths and checkpoint times are
             process 0's (broadcast), the runner state is gathered to every process for a checkpoint, and only
-            process 0 writes files and shows progress (``out_dir`` on a shared filesystem for ``resume``: every
+            process 0 writes files and reports progress (``out_dir`` on a shared filesystem for ``resume``: every
             process reads the checkpoint). On Ctrl-C a multi-process run saves nothing new (the other processes
             may not take part in a gather): its last periodic checkpoint stands.
 
@@ -405,7 +447,23 @@ def run_training(
             the last completed iteration.
     """
     start = time.perf_counter()
-    out_dir = Path(out_dir)
+    progress = as_progress(progress)
+    _check_arguments(learner, chunk, checkpoint_every, checkpoint_seconds, resume, overwrite, mesh)
+    distributed = mesh is not None and jax.process_count() > 1
+    main = not distributed or sharding.is_main_process()
+    run = _Run(learner, env, params, Path(out_dir), config_dict(learner.config), env_config, mesh, distributed, main,
+               progress if main else SILENT, csv, start)  # fmt: skip
+    _start_run(run, key, resume, overwrite)
+    max_chunk = min(run.total, int(chunk) if chunk is not None else 1000)
+    compiled = _compile(run, max_chunk)
+    _open_csv(run)
+    with running(run.progress, Task(learner.name, run.total, run.iteration, "iteration")):
+        _run_chunks(run, compiled, max_chunk, chunk, checkpoint_every, checkpoint_seconds, target_seconds_per_chunk,
+                    on_chunk)  # fmt: skip
+    return _finish_run(run)
+
+
+def _check_arguments(learner, chunk, checkpoint_every, checkpoint_seconds, resume, overwrite, mesh) -> None:
     total = int(learner.num_iterations)
     if total < 1:
         raise ValueError(f"learner.num_iterations: must be at least 1, got {total}")
@@ -415,225 +473,200 @@ def run_training(
         raise ValueError(f"checkpoint_every: must be a positive integer or None, got {checkpoint_every!r}")
     if not checkpoint_seconds > 0:
         raise ValueError(f"checkpoint_seconds: must be positive, got {checkpoint_seconds!r}")
-    if not progress_seconds >= 0:
-        raise ValueError(f"progress_seconds: must be >= 0, got {progress_seconds!r}")
     if resume and overwrite:
         raise ValueError("resume, overwrite: give one of them (continue the run in out_dir, or replace it)")
-    distributed = mesh is not None and jax.process_count() > 1
-    if mesh is not None:
-        from scg_jax import sharding
-
-        if distributed and mesh.devices.size != jax.device_count():
-            raise ValueError(
-                f"mesh: a run over {jax.process_count()} processes needs a mesh over all {jax.device_count()} devices "
-                f"(make_mesh('all'), devices: all), got {mesh.devices.size}"
-            )
-        num_envs = getattr(learner.config, "num_envs", None)
-        if num_envs is not None:
-            sharding.check_divisible(num_envs, mesh, f"training.{learner.name}.num_envs")
-    config = config_dict(learner.config)
-    key = raw_key(jnp.asarray(key))
-
-    checkpoint_file = out_dir / f"{CHECKPOINT_NAME}.json"
-    main = not distributed or sharding.is_main_process()  # the one process that writes files
-    existing = existing_run_files(out_dir)
-    if existing and overwrite:
-        for name in existing if main else ():
-            (out_dir / name).unlink(missing_ok=True)
-    elif existing and not (resume and checkpoint_file.exists()):
-        action = "has no checkpoint to resume" if resume else "already holds a training run"
+    if mesh is None:
+        return
+    if jax.process_count() > 1 and mesh.devices.size != jax.device_count():
         raise ValueError(
-            f"out_dir: {out_dir} {action} ({', '.join(existing)}); "
-            + ("use overwrite to replace it" if resume else "use resume to continue it or overwrite to replace it")
+            f"mesh: a run over {jax.process_count()} processes needs a mesh over all {jax.device_count()} devices "
+            f"(make_mesh('all'), devices: all), got {mesh.devices.size}"
         )
-    if distributed:  # every process has looked at the folder before process 0 changes it
-        _barrier("scg_jax.run_training: folder checked")
-    if main:
-        out_dir.mkdir(parents=True, exist_ok=True)
+    num_envs = getattr(learner.config, "num_envs", None)
+    if num_envs is not None:
+        sharding.check_divisible(num_envs, mesh, f"training.{learner.name}.num_envs")
 
-    init = jax.jit(learner.init)
-    iteration, elapsed_before, resumed_from, steps_at_start = 0, 0.0, None, 0
-    resumed_metrics: dict = {}
+
+def _start_run(run: _Run, key, resume: bool, overwrite: bool) -> None:
+    """Set-up: the folder rules, then the runner state, fresh or from the checkpoint, laid out over the mesh."""
+    key = raw_key(jnp.asarray(key))
+    out_dir = run.out_dir
+    check_run_folder(out_dir, run.learner.name, resume, overwrite)
+    if overwrite and run.main:
+        for name in existing_run_files(out_dir):
+            (out_dir / name).unlink(missing_ok=True)
+    if run.distributed:  # every process has looked at the folder before process 0 changes it
+        _barrier("scg_jax.run_training: folder checked")
+    if run.main:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    checkpoint_file = out_dir / f"{CHECKPOINT_NAME}.json"
     if resume and checkpoint_file.exists():
-        meta = load_metadata(out_dir, CHECKPOINT_NAME)
-        _check_resumable(meta, checkpoint_file, learner, config, env_config)
-        target = jax.eval_shape(learner.init, key, params)
-        try:
-            runner_state, meta = load_checkpoint(out_dir, CHECKPOINT_NAME, target)
-        except ValueError as error:
-            budget_changed = (meta.get("config") or {}).get("total_env_steps") != config.get("total_env_steps")
-            hint = (
-                " (the new total_env_steps changes the size of the state, e.g. a replay buffer clipped to the "
-                "budget: keep buffer_size at most the old budget)"
-                if budget_changed
-                else ""
-            )
-            raise ValueError(f"resume: {error}{hint}") from None
-        runner_state = jax.tree.map(jnp.asarray, runner_state)
-        iteration, elapsed_before = int(meta["iteration"]), float(meta.get("wall_time_s", 0.0))
-        resumed_from, steps_at_start = iteration, int(meta.get("env_steps", 0))
-        resumed_metrics = dict(meta.get("metrics") or {})
+        _resume(run, checkpoint_file, key)
     else:
-        runner_state = init(key, params)
-    if mesh is not None:
+        run.runner_state = jax.jit(run.learner.init)(key, run.params)
+    if run.mesh is not None:
         from scg_algorithms.rl.sharding import shard_runner_state
 
-        runner_state = shard_runner_state(runner_state, mesh)
-        params = sharding.replicate(params, mesh)
+        run.runner_state = shard_runner_state(run.runner_state, run.mesh)
+        run.params = sharding.replicate(run.params, run.mesh)
 
-    max_chunk = min(total, int(chunk) if chunk is not None else 1000)
+
+def _resume(run: _Run, checkpoint_file: Path, key) -> None:
+    """The runner state and counters of the checkpoint in ``run.out_dir`` (FieldError at ``resume`` when it cannot
+    be continued)."""
+    meta = load_metadata(run.out_dir, CHECKPOINT_NAME)
+    _check_resumable(meta, checkpoint_file, run.learner, run.config, run.env_config)
+    target = jax.eval_shape(run.learner.init, key, run.params)
+    try:
+        runner_state, meta = load_checkpoint(run.out_dir, CHECKPOINT_NAME, target)
+    except ValueError as error:
+        budget_changed = (meta.get("config") or {}).get("total_env_steps") != run.config.get("total_env_steps")
+        hint = (
+            " (the new total_env_steps changes the size of the state, e.g. a replay buffer clipped to the "
+            "budget: keep buffer_size at most the old budget)"
+            if budget_changed
+            else ""
+        )
+        raise FieldError("resume", f"{error}{hint}") from None
+    run.runner_state = jax.tree.map(jnp.asarray, runner_state)
+    run.iteration = run.saved_iteration = run.resumed_from = int(meta["iteration"])
+    run.elapsed_before = float(meta.get("wall_time_s", 0.0))
+    run.steps_at_start = int(meta.get("env_steps", 0))
+    # A resumed run that is already complete runs no iteration: it reports the checkpoint's last metrics.
+    run.last_metrics = dict(meta.get("metrics") or {})
+
+
+def _compile(run: _Run, max_chunk: int):
+    """The chunk runner, compiled once for every chunk length (a finished run resumed has nothing to compile)."""
+    if run.iteration >= run.total:
+        return None
     compile_start = time.perf_counter()
     try:
-        if iteration < total:  # a finished run resumed has nothing to compile
-            shardings = None if mesh is None else sharding.shardings_of(runner_state)
-            runner = _make_chunk_runner(learner, max_chunk, shardings, mesh)
-            compiled = runner.lower(runner_state, params, _count(1, distributed)).compile()
+        with running(run.progress, Task(f"compiling {run.learner.name}")):
+            shardings = None if run.mesh is None else sharding.shardings_of(run.runner_state)
+            runner = _make_chunk_runner(run.learner, max_chunk, shardings, run.mesh)
+            compiled = runner.lower(run.runner_state, run.params, _count(1, run.distributed)).compile()
     except KeyboardInterrupt:  # Ctrl-C while compiling: nothing new to save
-        saved = out_dir / f"{CHECKPOINT_NAME}.msgpack"
-        raise TrainingInterrupted(out_dir, iteration, total, saved if saved.exists() else None) from None
-    compile_s = time.perf_counter() - compile_start
+        raise run.interrupted(run.iteration) from None
+    run.compile_s = time.perf_counter() - compile_start
+    return compiled
 
-    csv_path = out_dir / CSV_NAME
-    names: list[str] = []
-    if csv:
-        metric_names = sorted(
-            jax.eval_shape(lambda s: learner.update(s, params)[1], runner_state).keys() - {"env_steps"}
-        )
-        names = metric_names
-        header = ["iteration", "env_steps", "wall_time_s", *names]
-        old_header, rows = _read_csv_rows(csv_path, iteration) if resumed_from is not None and main else (None, [])
-        if old_header is not None and old_header != header:
-            rows = []
-        if main:
-            _write_csv(csv_path, header, rows)
 
-    bar = _Progress(progress and main, total, iteration, learner.name, progress_seconds)
-    run_start = time.perf_counter()
-    # A resumed run that is already complete runs no iteration: it reports the checkpoint's last metrics.
-    last_metrics: dict = resumed_metrics
-    last_checkpoint_time = time.perf_counter()
-    saved_iteration = iteration  # the iteration the checkpoint on disk holds (when resumed) or will hold
+def _open_csv(run: _Run) -> None:
+    """``progress.csv``'s header and, on a resume, the rows up to the checkpoint (a later chunk's are dropped)."""
+    if not run.csv:
+        return
+    metrics = jax.eval_shape(lambda s: run.learner.update(s, run.params)[1], run.runner_state)
+    run.names = sorted(metrics.keys() - {"env_steps"})
+    header = ["iteration", "env_steps", "wall_time_s", *run.names]
+    resumed = run.resumed_from is not None and run.main
+    old_header, rows = _read_csv_rows(run.csv_path, run.iteration) if resumed else (None, [])
+    if old_header is not None and old_header != header:
+        rows = []
+    if run.main:
+        _write_csv(run.csv_path, header, rows)
+
+
+def _run_chunks(run: _Run, compiled, max_chunk, chunk, checkpoint_every, checkpoint_seconds, target_seconds,
+                on_chunk) -> None:  # fmt: skip
+    """The chunk loop: run, record (CSV, progress), checkpoint when due; on Ctrl-C save the last completed
+    iteration and raise ``TrainingInterrupted``."""
+    run.run_start = last_checkpoint_time = time.perf_counter()
     seconds_per_iteration = None
     try:
-        while iteration < total:
+        while run.iteration < run.total:
             if chunk is not None:
                 n = int(chunk)
             elif seconds_per_iteration is None:
                 n = 1
             else:
-                n = int(max(1, round(target_seconds_per_chunk / max(seconds_per_iteration, 1e-9))))
-            n = min(n, max_chunk, total - iteration)
+                n = int(max(1, round(target_seconds / max(seconds_per_iteration, 1e-9))))
+            n = min(n, max_chunk, run.total - run.iteration)
             if checkpoint_every is not None:
-                next_checkpoint = (iteration // checkpoint_every + 1) * checkpoint_every
-                n = min(n, next_checkpoint - iteration)
-            if distributed:  # every process runs the same chunk (its collectives pair up): process 0's timing decides
+                n = min(n, (run.iteration // checkpoint_every + 1) * checkpoint_every - run.iteration)
+            if run.distributed:  # every process runs the same chunk (its collectives pair up): process 0's decides
                 n = int(_from_process_0(n))
             t0 = time.perf_counter()
-            new_state, metrics = compiled(runner_state, params, _count(n, distributed))
-            if distributed:  # one gather per chunk, a collective of every process
+            new_state, metrics = compiled(run.runner_state, run.params, _count(n, run.distributed))
+            if run.distributed:  # one gather per chunk, a collective of every process
                 metrics = sharding.to_host(metrics)
             metrics = _host_metrics(metrics, n)  # waits for the chunk
-            dt = time.perf_counter() - t0
-            per_iteration = dt / n
+            per_iteration = (time.perf_counter() - t0) / n
             seconds_per_iteration = (
                 per_iteration if seconds_per_iteration is None else 0.5 * (seconds_per_iteration + per_iteration)
             )
-            now = time.perf_counter()
-            elapsed = elapsed_before + now - start
-            if csv and main:
-                rows = [_format_row(iteration + i + 1, elapsed, names, metrics, i) for i in range(n)]
-                with csv_path.open("a", newline="") as file:
-                    csv_lib.writer(file, lineterminator="\n").writerows(rows)
-            # Only now does the state count as done: an interrupt before this line saves the previous chunk's.
-            runner_state, iteration = new_state, iteration + n
-            last_metrics = {name: _scalar(values[-1]) for name, values in metrics.items()}
-            rate = (last_metrics["env_steps"] - steps_at_start) / max(now - run_start, 1e-9)
-            remaining = (total - iteration) * learner.steps_per_iteration / max(rate, 1e-9)
-            bar.update(
-                iteration,
-                f"{last_metrics['env_steps']:,} env steps, {rate:,.0f} steps/s, return "
-                f"{last_metrics.get('episode_return', math.nan):.4g}",
-                elapsed,
-                remaining,
-            )
-            due = (
-                iteration % checkpoint_every == 0
-                if checkpoint_every is not None
-                else now - last_checkpoint_time >= checkpoint_seconds
-            )
-            if distributed and checkpoint_every is None:  # a gather every process must join: process 0's clock decides
-                due = bool(_from_process_0(due))
-            if due or iteration >= total:
-                state_to_save = sharding.to_host(runner_state) if distributed else runner_state
-                if main:
-                    _save_runner(out_dir, learner, config, env_config, state_to_save, iteration, last_metrics, elapsed)
-                saved_iteration, last_checkpoint_time = iteration, time.perf_counter()
+            _record_chunk(run, new_state, metrics, n)
+            if checkpoint_every is not None:
+                due = run.iteration % checkpoint_every == 0
+            else:
+                due = time.perf_counter() - last_checkpoint_time >= checkpoint_seconds
+                if run.distributed:  # a gather every process must join: process 0's clock decides
+                    due = bool(_from_process_0(due))
+            if due or run.iteration >= run.total:
+                run.save()
+                last_checkpoint_time = time.perf_counter()
             if on_chunk is not None:
-                on_chunk(iteration)
+                on_chunk(run.iteration)
     except KeyboardInterrupt:
-        bar.stop()
-        if distributed:  # saving would gather over processes that may not all have stopped: the last checkpoint stands
-            saved = out_dir / f"{CHECKPOINT_NAME}.msgpack"
-            raise TrainingInterrupted(out_dir, saved_iteration, total, saved if saved.exists() else None) from None
-        if iteration > saved_iteration:
-            elapsed = elapsed_before + time.perf_counter() - start
-            _save_runner(out_dir, learner, config, env_config, runner_state, iteration, last_metrics, elapsed)
-            saved_iteration = iteration
-        if csv and csv_path.exists():  # rows of a chunk that did not complete are dropped on resume anyway
-            header, rows = _read_csv_rows(csv_path, saved_iteration)
-            if header is not None:
-                _write_csv(csv_path, header, rows)
-        saved = out_dir / f"{CHECKPOINT_NAME}.msgpack"
-        raise TrainingInterrupted(out_dir, saved_iteration, total, saved if saved.exists() else None) from None
-    finally:
-        bar.stop()
+        raise _save_interrupted(run) from None
 
-    policy_params = learner.policy_params(runner_state)
-    if distributed:
+
+def _record_chunk(run: _Run, new_state, metrics: dict, n: int) -> None:
+    """Append the chunk's CSV rows, take its state as done and report it."""
+    elapsed = run.elapsed()
+    if run.csv and run.main:
+        rows = [_format_row(run.iteration + i + 1, elapsed, run.names, metrics, i) for i in range(n)]
+        with run.csv_path.open("a", newline="") as file:
+            csv_lib.writer(file, lineterminator="\n").writerows(rows)
+    # Only now does the state count as done: an interrupt before this line saves the previous chunk's.
+    run.runner_state, run.iteration = new_state, run.iteration + n
+    run.last_metrics = {name: _scalar(values[-1]) for name, values in metrics.items()}
+    rate = (run.last_metrics["env_steps"] - run.steps_at_start) / max(time.perf_counter() - run.run_start, 1e-9)
+    remaining = (run.total - run.iteration) * run.learner.steps_per_iteration / max(rate, 1e-9)
+    info = {**run.last_metrics, "steps_per_s": rate, "elapsed_s": elapsed, "remaining_s": remaining}
+    run.progress.update(run.iteration, info)
+
+
+def _save_interrupted(run: _Run) -> TrainingInterrupted:
+    """After Ctrl-C: a checkpoint of the last completed iteration (one process) and ``progress.csv`` cut to it."""
+    if run.distributed:  # saving would gather over processes that may not all have stopped: the last checkpoint stands
+        return run.interrupted(run.saved_iteration)
+    if run.iteration > run.saved_iteration:
+        run.save()
+    if run.csv and run.csv_path.exists():  # rows of a chunk that did not complete are dropped on resume anyway
+        header, rows = _read_csv_rows(run.csv_path, run.saved_iteration)
+        if header is not None:
+            _write_csv(run.csv_path, header, rows)
+    return run.interrupted(run.saved_iteration)
+
+
+def _finish_run(run: _Run) -> dict:
+    """Finalisation: ``policy.*`` and the learning curve (process 0), then the summary."""
+    learner, env = run.learner, run.env
+    policy_params = learner.policy_params(run.runner_state)
+    if run.distributed:
         policy_params = sharding.to_host(policy_params)  # typed keys as raw data, as checkpoints store them
     stats = find_obs_stats(policy_params)
-    env_steps = int(last_metrics.get("env_steps", steps_at_start))
-    if main:
-        save_checkpoint(
-            out_dir,
-            POLICY_NAME,
-            policy_params,
-            {
-                "algo": learner.name,
-                "config": config,
-                "env_config": env_config,
-                "system": env.system.name,
-                "task": env.task,
-                "obs_size": int(env.observation_size),
-                "action_size": int(env.action_size),
-                "obs_normalizer": None if stats is None else json_ready(stats._asdict()),
-                "iterations": iteration,
-                "env_steps": env_steps,
-            },
-        )
-        if csv:
-            plot_learning_curve(
-                csv_path, out_dir / CURVE_NAME, rmse_label=rmse_label(env, params), ctrl_freq=float(env.ctrl_freq)
-            )
-    if distributed:  # every process returns once the files are written (a caller may read them next)
-        _barrier("scg_jax.run_training: files written")
-    total_s = time.perf_counter() - start
-    run_s = time.perf_counter() - run_start
-    session_steps = env_steps - steps_at_start
-    return json_ready(
-        {
-            "algo": learner.name,
-            "iterations": iteration,
+    env_steps = int(run.last_metrics.get("env_steps", run.steps_at_start))
+    if run.main:
+        save_checkpoint(run.out_dir, POLICY_NAME, policy_params, {
+            "algo": learner.name, "config": run.config, "env_config": run.env_config, "system": env.system.name,
+            "task": env.task, "obs_size": int(env.observation_size), "action_size": int(env.action_size),
+            "obs_normalizer": None if stats is None else json_ready(stats._asdict()), "iterations": run.iteration,
             "env_steps": env_steps,
-            "total_time_s": total_s,
-            "compile_time_s": compile_s,
-            "train_time_s": run_s,
-            "env_steps_per_s": session_steps / max(run_s, 1e-9),
-            "resumed_from_iteration": resumed_from,
-            "final_metrics": last_metrics,
-            "out_dir": str(out_dir),
-        }
-    )
+        })  # fmt: skip
+        if run.csv:
+            plot_learning_curve(run.csv_path, run.out_dir / CURVE_NAME, rmse_label=rmse_label(env, run.params),
+                                ctrl_freq=float(env.ctrl_freq))  # fmt: skip
+    if run.distributed:  # every process returns once the files are written (a caller may read them next)
+        _barrier("scg_jax.run_training: files written")
+    run_s = time.perf_counter() - run.run_start
+    return json_ready({
+        "algo": learner.name, "iterations": run.iteration, "env_steps": env_steps,
+        "total_time_s": time.perf_counter() - run.start, "compile_time_s": run.compile_s, "train_time_s": run_s,
+        "env_steps_per_s": (env_steps - run.steps_at_start) / max(run_s, 1e-9),
+        "resumed_from_iteration": run.resumed_from, "final_metrics": run.last_metrics, "out_dir": str(run.out_dir),
+    })  # fmt: skip
 
 
 def _save_runner(out_dir, learner, config, env_config, runner_state, iteration, metrics, elapsed) -> None:
@@ -652,75 +685,3 @@ def _save_runner(out_dir, learner, config, env_config, runner_state, iteration, 
             "metrics": json_ready(metrics),
         },
     )
-
-
-# Position entries of each system's state (m): a RMSE weighted only on these is a distance.
-_POSITION_INDICES = {"cartpole": (0,), "quadrotor_1d": (0,), "quadrotor_2d": (0, 2), "quadrotor_3d": (0, 2, 4)}
-
-
-def rmse_label(env, params) -> str:
-    """Axis label of the episode RMSE: ``"RMSE (m)"`` when ``params.mse_weight`` weighs only positions with 1
-    (the quadrotors' default), otherwise a weighted full-state error of mixed units (the cart-pole's default)."""
-    weights = np.asarray(params.mse_weight)
-    weighted = set(np.flatnonzero(weights).tolist())
-    positions = set(_POSITION_INDICES.get(env.system.name, ()))
-    if weighted and weighted <= positions and np.all(weights[list(weighted)] == 1.0):
-        return "RMSE (m)"
-    return "RMSE (weighted state error, mixed units)"
-
-
-CURVE_PANELS = (
-    ("episode_return", "return (sum of rewards)"),
-    ("episode_rmse", None),  # the label comes from rmse_label
-    ("episode_cost", "cost (steps in violation)"),
-    ("episode_length", "length (control steps)"),
-)
-
-
-def plot_learning_curve(
-    csv_path, png_path, rmse_label: str = "RMSE (weighted state error)", ctrl_freq: float | None = None
-) -> None:
-    """Plot ``progress.csv`` against env steps: return, RMSE, cost and length per episode, plus every ``*loss*``
-    column, one panel each (the panels whose column is missing are left out); written atomically as a PNG.
-
-    With ``ctrl_freq`` (Hz) and the ``episode_cost`` and ``episode_length`` columns, one more panel plots the
-    fraction of steps in violation (episode cost over episode length) against seconds of simulated training data
-    (``env_steps / ctrl_freq``, log scale), the x-axis of the paper's constraint figure.
-
-    ``nan`` entries (no episode had ended yet) are left out of the lines rather than drawn as 0.
-    """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    with Path(csv_path).open(newline="") as file:
-        rows = list(csv_lib.DictReader(file))
-    if not rows:
-        return
-    columns = rows[0].keys()
-    panels = [(name, label or rmse_label) for name, label in CURVE_PANELS if name in columns]
-    panels += [(name, name) for name in columns if "loss" in name]
-    steps = np.array([float(row["env_steps"]) for row in rows])
-    violation_panel = ctrl_freq is not None and {"episode_cost", "episode_length"} <= set(columns)
-    num_panels = len(panels) + int(violation_panel)
-    ncols = min(3, max(num_panels, 1))
-    nrows = max(1, math.ceil(num_panels / ncols))
-    fig = Figure(figsize=(4.2 * ncols, 3.0 * nrows), layout="constrained")
-    FigureCanvasAgg(fig)
-    for i, (name, label) in enumerate(panels):
-        ax = fig.add_subplot(nrows, ncols, i + 1)
-        values = np.array([float(row[name]) if row[name] != "" else math.nan for row in rows])
-        ax.plot(steps, values, lw=1.2)
-        ax.set_xlabel("env steps")
-        ax.set_ylabel(label, fontsize=9)
-        ax.set_title(label, fontsize=10)
-        ax.grid(alpha=0.3)
-    if violation_panel:
-        ax = fig.add_subplot(nrows, ncols, len(panels) + 1)
-        cost, length = (np.array([float(row[n]) if row[n] != "" else math.nan for row in rows]) for n in
-                        ("episode_cost", "episode_length"))  # fmt: skip
-        ax.plot(steps / ctrl_freq, cost / length, lw=1.2)
-        ax.set_xscale("log")
-        ax.set_xlabel("simulated training data (s)")
-        ax.set_title("fraction of steps in violation", fontsize=10)
-        ax.grid(alpha=0.3)
-    write_atomic(png_path, lambda file: fig.savefig(file, format="png", dpi=100))

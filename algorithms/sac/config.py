@@ -17,64 +17,41 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from scg_algorithms.base import option
-from scg_algorithms.rl.config import (
-    action_scale_option,
-    check_budget,
-    check_learner_fields,
-    layer_sizes,
-    parse_learner_config,
-)
-from scg_algorithms.rl.networks import ACTIVATIONS as _NETWORK_ACTIVATIONS
-
-# The shared networks' activations, SAC's default first.
-ACTIVATIONS = ("relu", *(name for name in _NETWORK_ACTIVATIONS if name != "relu"))
+from scg_algorithms.base import option, parse_options
+from scg_algorithms.rl.config import check_budget, hidden_sizes_option, learner_option
 
 
 @dataclasses.dataclass(frozen=True)
 class Config:
     """SAC hyperparameters (``training.sac``). Steps count transitions summed over the parallel copies."""
 
-    total_env_steps: int = option(150_000, "budget: environment transitions over all copies")
-    num_envs: int = option(64, "parallel environment copies")
-    rollout_steps: int = option(1, "control steps per copy collected per iteration")
-    utd: float = option(0.25, "gradient steps per environment transition (update-to-data ratio)")
-    warmup_steps: int = option(5_000, "transitions collected with uniform random actions before learning starts")
-    buffer_size: int = option(100_000, "replay capacity in transitions (clipped to total_env_steps)")
-    batch_size: int = option(256, "transitions per gradient step")
+    total_env_steps: int = learner_option("total_env_steps", 150_000)
+    num_envs: int = learner_option("num_envs", 64)
+    rollout_steps: int = option(1, "control steps per copy collected per iteration", check="positive")
+    utd: float = option(0.25, "gradient steps per environment transition (update-to-data ratio)", check="positive")
+    warmup_steps: int = option(
+        5_000, "transitions collected with uniform random actions before learning starts", check="non_negative"
+    )
+    buffer_size: int = option(100_000, "replay capacity in transitions (clipped to total_env_steps)", check="positive")
+    batch_size: int = option(256, "transitions per gradient step", check="positive")
     gamma: float = option(0.99, "discount factor per control step")
     tau: float = option(0.005, "Polyak factor of the target critics: target <- (1 - tau) target + tau online")
-    actor_lr: float = option(1e-3, "Adam learning rate of the actor")
-    critic_lr: float = option(1e-3, "Adam learning rate of the twin critics")
-    alpha_lr: float = option(1e-3, "Adam learning rate of log(temperature)")
-    init_alpha: float = option(0.1, "initial entropy temperature")
+    actor_lr: float = option(1e-3, "Adam learning rate of the actor", check="positive")
+    critic_lr: float = option(1e-3, "Adam learning rate of the twin critics", check="positive")
+    alpha_lr: float = option(1e-3, "Adam learning rate of log(temperature)", check="positive")
+    init_alpha: float = option(0.1, "initial entropy temperature", check="positive")
     autotune_alpha: bool = option(True, "learn the temperature towards the entropy target")
     target_entropy_per_action: float = option(-1.0, "entropy target per action dimension (-1: -nu in total)")
-    hidden_sizes: tuple = option((64.0, 64.0), "hidden layer widths of the actor and of each critic")
-    activation: str = option("relu", "hidden activation", ACTIVATIONS)
+    hidden_sizes: tuple = hidden_sizes_option((64, 64), "hidden layer widths of the actor and of each critic")
+    activation: str = learner_option("activation", "relu")
     log_std_min: float = option(-5.0, "lower clip of the actor's log standard deviation")
     log_std_max: float = option(2.0, "upper clip of the actor's log standard deviation")
-    reward_scale: float = option(1.0, "multiplies the reward before learning")
-    normalize_observations: bool = option(True, "standardise observations with running statistics")
-    max_grad_norm: float = option(0.0, "global gradient-norm clip of every optimiser (0: off)")
-    action_scale: float = action_scale_option()
+    reward_scale: float = learner_option("reward_scale", 1.0)
+    normalize_observations: bool = learner_option("normalize_observations", True)
+    max_grad_norm: float = option(0.0, "global gradient-norm clip of every optimiser (0: off)", check="non_negative")
+    action_scale: float = learner_option("action_scale", 1.0)
 
     def _check(self, path: str) -> None:
-        check_learner_fields(
-            self,
-            path,
-            positive_fields=(
-                "rollout_steps",
-                "buffer_size",
-                "batch_size",
-                "utd",
-                "actor_lr",
-                "critic_lr",
-                "alpha_lr",
-                "init_alpha",
-            ),
-            nonnegative=("warmup_steps",),
-        )
         if not 0.0 < self.gamma < 1.0:
             raise ValueError(f"{path}.gamma: must be in (0, 1), got {self.gamma}")
         if not 0.0 < self.tau <= 1.0:
@@ -83,9 +60,6 @@ class Config:
             raise ValueError(
                 f"{path}.log_std_min: must be below log_std_max ({self.log_std_max}), got {self.log_std_min}"
             )
-        if self.max_grad_norm < 0:
-            raise ValueError(f"{path}.max_grad_norm: must be >= 0 (0 turns clipping off), got {self.max_grad_norm}")
-        layer_sizes(f"{path}.hidden_sizes", self.hidden_sizes)
         per_iteration = self.utd * self.transitions_per_iteration
         if not math.isclose(per_iteration, round(per_iteration)) or round(per_iteration) < 1:
             raise ValueError(
@@ -125,10 +99,6 @@ class Config:
         """Replay capacity: ``buffer_size`` clipped to the budget (a larger buffer would never fill)."""
         return min(self.buffer_size, max(self.total_env_steps, 1))
 
-    @property
-    def hidden(self) -> tuple[int, ...]:
-        return layer_sizes("hidden_sizes", self.hidden_sizes)
-
     def to_dict(self) -> dict:
         """Plain JSON-able mapping that ``parse_config`` turns back into an equal ``Config``."""
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
@@ -137,4 +107,4 @@ class Config:
 
 def parse_config(options=None, path: str = "training.sac") -> Config:
     """``Config`` from a mapping (``None``: the defaults); ValueError naming ``<path>.<key>`` on bad input."""
-    return parse_learner_config(Config, options, path)
+    return parse_options(Config, options, path)

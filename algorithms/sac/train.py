@@ -10,8 +10,8 @@ truncation bootstraps from the stored final observation), the actor (reparameter
 freshly updated critics), the temperature (towards the entropy target ``target_entropy_per_action * nu``), and the
 target critics (``tau``). The first ``warmup_iterations`` act uniformly at random and do not learn.
 
-``make_train(config, env)(key, params)`` runs the budget with two ``lax.scan``-s (warm-up, learning): jit it, vmap
-it over keys for seeds. ``make_learner(config, env)`` exposes the same iteration to the host driver
+``make_train(config, env)(key, params)`` runs the budget in one ``lax.scan`` (``scg_algorithms.rl.learner``): jit it,
+vmap it over keys for seeds. ``make_learner(config, env)`` exposes the same iteration to the host driver
 (``scg_algorithms.rl.training.run_training``), choosing warm-up or learning with ``lax.cond`` on the iteration count.
 """
 
@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import optax
 
 from scg_algorithms.rl import envs as rl_envs
+from scg_algorithms.rl import learner as learner_lib
 from scg_algorithms.rl.collector import ActOutput, CollectorState, collect, init_collector
 from scg_algorithms.rl.counter import Count, add_count, count_at_least, zero_count
 from scg_algorithms.rl.networks import QNetwork, TanhGaussianActor, twin_q
@@ -43,8 +44,10 @@ Critic = QNetwork
 
 def make_networks(config: Config, action_size: int) -> tuple[TanhGaussianActor, QNetwork]:
     """The actor and critic modules of ``config``."""
-    actor = TanhGaussianActor(config.hidden, action_size, config.activation, config.log_std_min, config.log_std_max)
-    return actor, QNetwork(config.hidden, config.activation)
+    actor = TanhGaussianActor(
+        config.hidden_sizes, action_size, config.activation, config.log_std_min, config.log_std_max
+    )
+    return actor, QNetwork(config.hidden_sizes, config.activation)
 
 
 # --------------------------------------------------------------------------------------------- policy
@@ -156,180 +159,238 @@ def _optimizer(learning_rate: float, max_grad_norm: float):
 
 
 class _Parts(NamedTuple):
+    """The static pieces of a SAC run (decided at ``make_learner``)."""
+
+    config: Config
     train_env: rl_envs.TrainEnv
-    init: Callable
-    iteration: Callable
+    actor: TanhGaussianActor
+    critic: QNetwork
+    policy_fn: Callable
+    actor_tx: Any
+    critic_tx: Any
+    alpha_tx: Any
+    target_entropy: float
+
+    def norm(self, stats, obs):
+        """``obs`` as the networks see it (normalised with ``stats`` when ``normalize_observations``)."""
+        return normalize(stats, obs) if self.config.normalize_observations else obs
 
 
-def _build(config: Config, env) -> _Parts:
-    """The pure ``init(key, params)`` and ``iteration(state, params, learning)`` of ``config`` on ``env``."""
+def _parts(config: Config, env) -> _Parts:
     train_env = rl_envs.make_train_env(env, config.num_envs, config.action_scale)
-    obs_size, action_size = train_env.obs_size, train_env.action_size
-    actor, critic = make_networks(config, action_size)
-    policy_fn = make_policy_fn(config, action_size)
-    actor_tx = _optimizer(config.actor_lr, config.max_grad_norm)
-    critic_tx = _optimizer(config.critic_lr, config.max_grad_norm)
-    alpha_tx = optax.adam(config.alpha_lr)
-    target_entropy = config.target_entropy_per_action * action_size
-    num_envs, batch_size = config.num_envs, config.batch_size
-    norm = (lambda stats, obs: normalize(stats, obs)) if config.normalize_observations else (lambda stats, obs: obs)
+    actor, critic = make_networks(config, train_env.action_size)
+    return _Parts(
+        config=config,
+        train_env=train_env,
+        actor=actor,
+        critic=critic,
+        policy_fn=make_policy_fn(config, train_env.action_size),
+        actor_tx=_optimizer(config.actor_lr, config.max_grad_norm),
+        critic_tx=_optimizer(config.critic_lr, config.max_grad_norm),
+        alpha_tx=optax.adam(config.alpha_lr),
+        target_entropy=config.target_entropy_per_action * train_env.action_size,
+    )
 
-    def init(key, params) -> RunnerState:
-        key_env, key_actor, key_critic, key = jax.random.split(key, 4)
-        dummy_obs, dummy_action = jnp.zeros((obs_size,)), jnp.zeros((action_size,))
-        actor_params = actor.init(key_actor, dummy_obs)
-        critic_params = jax.vmap(critic.init, in_axes=(0, None, None))(
-            jax.random.split(key_critic, 2), dummy_obs, dummy_action
+
+def _init(parts: _Parts, key, params) -> RunnerState:
+    config, obs_size, action_size = parts.config, parts.train_env.obs_size, parts.train_env.action_size
+    key_env, key_actor, key_critic, key = jax.random.split(key, 4)
+    dummy_obs, dummy_action = jnp.zeros((obs_size,)), jnp.zeros((action_size,))
+    actor_params = parts.actor.init(key_actor, dummy_obs)
+    critic_params = jax.vmap(parts.critic.init, in_axes=(0, None, None))(
+        jax.random.split(key_critic, 2), dummy_obs, dummy_action
+    )
+    log_alpha = jnp.asarray(math.log(config.init_alpha), jnp.float32)
+    example = {
+        "obs": dummy_obs,
+        "action": dummy_action,
+        "reward": jnp.zeros(()),
+        "next_obs": dummy_obs,
+        "terminated": jnp.zeros(()),
+        "cost": jnp.zeros(()),
+    }
+    return RunnerState(
+        actor=actor_params,
+        critic=critic_params,
+        target_critic=critic_params,
+        log_alpha=log_alpha,
+        actor_opt=parts.actor_tx.init(actor_params),
+        critic_opt=parts.critic_tx.init(critic_params),
+        alpha_opt=parts.alpha_tx.init(log_alpha),
+        buffer=replay.init_buffer(config.capacity, example),
+        collector=init_collector(parts.train_env, key_env, params, jnp.float32),
+        key=raw_key(key),  # raw data, as PPO: the state serialises the same whatever key was passed
+        iteration=zero_count(),
+        env_steps=zero_count(),
+        grad_steps=zero_count(),
+    )
+
+
+def _gradient_step(parts: _Parts, carry: Learning, key, buffer, stats) -> tuple[Learning, dict]:
+    """One gradient step of the critics, the actor, the temperature and the target critics, in that order."""
+    config, actor, critic = parts.config, parts.actor, parts.critic
+    key_sample, key_next, key_pi = jax.random.split(key, 3)
+    batch = replay.sample(buffer, key_sample, config.batch_size)
+    obs, next_obs = parts.norm(stats, batch["obs"]), parts.norm(stats, batch["next_obs"])
+    log_alpha = carry.log_alpha
+    alpha = jnp.exp(log_alpha)
+
+    next_mean, next_log_std = actor.apply(carry.actor, next_obs)
+    next_action, next_log_prob = losses.sample_tanh_gaussian(key_next, next_mean, next_log_std)
+    next_q = twin_q(critic, carry.target_critic, next_obs, next_action)
+    target = losses.critic_target(
+        config.reward_scale * batch["reward"], batch["terminated"], next_q, next_log_prob, alpha, config.gamma
+    )
+    target = jax.lax.stop_gradient(target)
+
+    def critic_objective(c_params):
+        q = twin_q(critic, c_params, obs, batch["action"])
+        return losses.critic_loss(q, target), q
+
+    (critic_loss, q), critic_grads = jax.value_and_grad(critic_objective, has_aux=True)(carry.critic)
+    updates, critic_opt = parts.critic_tx.update(critic_grads, carry.critic_opt, carry.critic)
+    critic_params = optax.apply_updates(carry.critic, updates)
+
+    def actor_objective(a_params):
+        mean, log_std = actor.apply(a_params, obs)
+        action, log_prob = losses.sample_tanh_gaussian(key_pi, mean, log_std)
+        q_pi = twin_q(critic, critic_params, obs, action)
+        return losses.actor_loss(q_pi, log_prob, alpha), log_prob
+
+    (actor_loss, log_prob), actor_grads = jax.value_and_grad(actor_objective, has_aux=True)(carry.actor)
+    updates, actor_opt = parts.actor_tx.update(actor_grads, carry.actor_opt, carry.actor)
+    actor_params = optax.apply_updates(carry.actor, updates)
+
+    alpha_opt = carry.alpha_opt
+    alpha_loss, alpha_grad = jax.value_and_grad(losses.temperature_loss)(log_alpha, log_prob, parts.target_entropy)
+    if config.autotune_alpha:
+        updates, alpha_opt = parts.alpha_tx.update(alpha_grad, alpha_opt, log_alpha)
+        log_alpha = optax.apply_updates(log_alpha, updates)
+
+    target_params = losses.polyak_update(carry.target_critic, critic_params, config.tau)
+    metrics = {
+        "critic_loss": critic_loss,
+        "actor_loss": actor_loss,
+        "alpha_loss": alpha_loss,
+        "alpha": alpha,
+        "entropy": -jnp.mean(log_prob),
+        "q_mean": jnp.mean(q),
+    }
+    new = Learning(actor_params, critic_params, target_params, log_alpha, actor_opt, critic_opt, alpha_opt)
+    return new, metrics
+
+
+def _collect(parts: _Parts, state: RunnerState, params, key, learning):
+    """One iteration's transitions (``collect``), acting with the policy (``learning``) or uniformly at random."""
+    config, num_envs, action_size = parts.config, parts.config.num_envs, parts.train_env.action_size
+    policy_params = PolicyParams(state.actor, state.collector.obs_stats)
+
+    def act(obs, key_step) -> ActOutput:
+        key_policy, key_random = jax.random.split(key_step)
+        policy_action = jax.vmap(parts.policy_fn, in_axes=(None, 0, 0))(
+            policy_params, obs, jax.random.split(key_policy, num_envs)
         )
-        log_alpha = jnp.asarray(math.log(config.init_alpha), jnp.float32)
-        example = {
-            "obs": dummy_obs,
-            "action": dummy_action,
-            "reward": jnp.zeros(()),
-            "next_obs": dummy_obs,
-            "terminated": jnp.zeros(()),
-            "cost": jnp.zeros(()),
-        }
-        return RunnerState(
-            actor=actor_params,
-            critic=critic_params,
-            target_critic=critic_params,
-            log_alpha=log_alpha,
-            actor_opt=actor_tx.init(actor_params),
-            critic_opt=critic_tx.init(critic_params),
-            alpha_opt=alpha_tx.init(log_alpha),
-            buffer=replay.init_buffer(config.capacity, example),
-            collector=init_collector(train_env, key_env, params, jnp.float32),
-            key=raw_key(key),  # raw data, as PPO: the state serialises the same whatever key was passed
-            iteration=zero_count(),
-            env_steps=zero_count(),
-            grad_steps=zero_count(),
+        random_action = jax.random.uniform(key_random, (num_envs, action_size), minval=-1.0, maxval=1.0)
+        return ActOutput(jnp.where(learning, policy_action, random_action), {})
+
+    return collect(
+        parts.train_env, params, state.collector, act, key, config.rollout_steps,
+        update_normalizer=config.normalize_observations,
+    )  # fmt: skip
+
+
+def _iteration(parts: _Parts, state: RunnerState, params, learning):
+    """One iteration; ``learning`` (bool scalar, may be traced) selects policy actions and gradient steps, or
+    uniform random actions and none (warm-up). A ``learning`` that does not depend on vmapped values keeps
+    the ``lax.cond`` a real branch under ``jax.vmap``, so warm-up iterations skip the gradient work."""
+    config = parts.config
+    key, key_collect, key_learn = jax.random.split(state.key, 3)
+    collector, steps, episode, _ = _collect(parts, state, params, key_collect, learning)
+    transitions = {
+        "obs": steps.obs,
+        "action": steps.action,
+        "reward": steps.reward,
+        "next_obs": steps.next_obs,
+        "terminated": steps.terminated,
+        "cost": steps.cost,
+    }
+    buffer = replay.add(state.buffer, jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), transitions))
+    obs_stats = collector.obs_stats
+
+    def learn(carry, key):
+        carry, step_metrics = jax.lax.scan(
+            lambda c, k: _gradient_step(parts, c, k, buffer, obs_stats),
+            carry,
+            jax.random.split(key, config.grad_steps_per_iteration),
         )
+        return carry, jax.tree.map(lambda m: jnp.mean(m).astype(jnp.float32), step_metrics)
 
-    def gradient_step(carry: Learning, key, buffer, stats) -> tuple[Learning, dict]:
-        key_sample, key_next, key_pi = jax.random.split(key, 3)
-        batch = replay.sample(buffer, key_sample, batch_size)
-        obs, next_obs = norm(stats, batch["obs"]), norm(stats, batch["next_obs"])
-        log_alpha = carry.log_alpha
-        alpha = jnp.exp(log_alpha)
+    def skip(carry, key):
+        metrics = {name: jnp.zeros((), jnp.float32) for name in LOSS_METRICS}
+        return carry, {**metrics, "alpha": jnp.exp(carry.log_alpha).astype(jnp.float32)}
 
-        next_mean, next_log_std = actor.apply(carry.actor, next_obs)
-        next_action, next_log_prob = losses.sample_tanh_gaussian(key_next, next_mean, next_log_std)
-        next_q = twin_q(critic, carry.target_critic, next_obs, next_action)
-        target = losses.critic_target(
-            config.reward_scale * batch["reward"], batch["terminated"], next_q, next_log_prob, alpha, config.gamma
-        )
-        target = jax.lax.stop_gradient(target)
-
-        def critic_objective(c_params):
-            q = twin_q(critic, c_params, obs, batch["action"])
-            return losses.critic_loss(q, target), q
-
-        (critic_loss, q), critic_grads = jax.value_and_grad(critic_objective, has_aux=True)(carry.critic)
-        updates, critic_opt = critic_tx.update(critic_grads, carry.critic_opt, carry.critic)
-        critic_params = optax.apply_updates(carry.critic, updates)
-
-        def actor_objective(a_params):
-            mean, log_std = actor.apply(a_params, obs)
-            action, log_prob = losses.sample_tanh_gaussian(key_pi, mean, log_std)
-            q_pi = twin_q(critic, critic_params, obs, action)
-            return losses.actor_loss(q_pi, log_prob, alpha), log_prob
-
-        (actor_loss, log_prob), actor_grads = jax.value_and_grad(actor_objective, has_aux=True)(carry.actor)
-        updates, actor_opt = actor_tx.update(actor_grads, carry.actor_opt, carry.actor)
-        actor_params = optax.apply_updates(carry.actor, updates)
-
-        alpha_opt = carry.alpha_opt
-        alpha_loss, alpha_grad = jax.value_and_grad(losses.temperature_loss)(log_alpha, log_prob, target_entropy)
-        if config.autotune_alpha:
-            updates, alpha_opt = alpha_tx.update(alpha_grad, alpha_opt, log_alpha)
-            log_alpha = optax.apply_updates(log_alpha, updates)
-
-        target_params = losses.polyak_update(carry.target_critic, critic_params, config.tau)
-        metrics = {
-            "critic_loss": critic_loss,
-            "actor_loss": actor_loss,
-            "alpha_loss": alpha_loss,
-            "alpha": alpha,
-            "entropy": -jnp.mean(log_prob),
-            "q_mean": jnp.mean(q),
-        }
-        new = Learning(actor_params, critic_params, target_params, log_alpha, actor_opt, critic_opt, alpha_opt)
-        return new, metrics
-
-    def iteration(state: RunnerState, params, learning):
-        """One iteration; ``learning`` (bool scalar, may be traced) selects policy actions and gradient steps, or
-        uniform random actions and none (warm-up). A ``learning`` that does not depend on vmapped values keeps
-        the ``lax.cond`` a real branch under ``jax.vmap``, so warm-up iterations skip the gradient work."""
-        key, key_collect, key_learn = jax.random.split(state.key, 3)
-        policy_params = PolicyParams(state.actor, state.collector.obs_stats)
-
-        def act(obs, key_step) -> ActOutput:
-            key_policy, key_random = jax.random.split(key_step)
-            policy_action = jax.vmap(policy_fn, in_axes=(None, 0, 0))(
-                policy_params, obs, jax.random.split(key_policy, num_envs)
-            )
-            random_action = jax.random.uniform(key_random, (num_envs, action_size), minval=-1.0, maxval=1.0)
-            return ActOutput(jnp.where(learning, policy_action, random_action), {})
-
-        collector, steps, episode = collect(
-            train_env,
-            params,
-            state.collector,
-            act,
-            key_collect,
-            config.rollout_steps,
-            update_normalizer=config.normalize_observations,
-        )
-        transitions = {
-            "obs": steps.obs,
-            "action": steps.action,
-            "reward": steps.reward,
-            "next_obs": steps.next_obs,
-            "terminated": steps.terminated,
-            "cost": steps.cost,
-        }
-        flat = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), transitions)
-        buffer = replay.add(state.buffer, flat)
-        obs_stats = collector.obs_stats
-
-        def learn(carry, key):
-            carry, step_metrics = jax.lax.scan(
-                lambda c, k: gradient_step(c, k, buffer, obs_stats),
-                carry,
-                jax.random.split(key, config.grad_steps_per_iteration),
-            )
-            return carry, jax.tree.map(lambda m: jnp.mean(m).astype(jnp.float32), step_metrics)
-
-        def skip(carry, key):
-            metrics = {name: jnp.zeros((), jnp.float32) for name in LOSS_METRICS}
-            return carry, {**metrics, "alpha": jnp.exp(carry.log_alpha).astype(jnp.float32)}
-
-        carry, loss_metrics = jax.lax.cond(learning, learn, skip, state.learning, key_learn)
-        num_grad = jnp.where(learning, config.grad_steps_per_iteration, 0).astype(jnp.uint32)
-        new_state = state._replace(
-            **carry._asdict(),
-            buffer=buffer,
-            collector=collector,
-            key=key,
-            iteration=add_count(state.iteration, 1),
-            env_steps=add_count(state.env_steps, config.transitions_per_iteration),
-            grad_steps=add_count(state.grad_steps, num_grad),
-        )
-        metrics = {
-            "env_steps": new_state.env_steps,
-            "grad_steps": new_state.grad_steps,
-            **episode,
-            **{name: loss_metrics[name].astype(jnp.float32) for name in LOSS_METRICS},
-        }
-        return new_state, metrics
-
-    return _Parts(train_env, init, iteration)
+    carry, loss_metrics = jax.lax.cond(learning, learn, skip, state.learning, key_learn)
+    num_grad = jnp.where(learning, config.grad_steps_per_iteration, 0).astype(jnp.uint32)
+    new_state = state._replace(
+        **carry._asdict(),
+        buffer=buffer,
+        collector=collector,
+        key=key,
+        iteration=add_count(state.iteration, 1),
+        env_steps=add_count(state.env_steps, config.transitions_per_iteration),
+        grad_steps=add_count(state.grad_steps, num_grad),
+    )
+    metrics = {
+        "env_steps": new_state.env_steps,
+        "grad_steps": new_state.grad_steps,
+        **episode,
+        **{name: loss_metrics[name].astype(jnp.float32) for name in LOSS_METRICS},
+    }
+    return new_state, metrics
 
 
 # --------------------------------------------------------------------------------------------- public API
+def policy_params(state: RunnerState) -> PolicyParams:
+    """The part of the runner state a policy needs (saved as ``policy.msgpack`` by the host driver)."""
+    return PolicyParams(actor=state.actor, obs_stats=state.collector.obs_stats)
+
+
+def _learner(config: Config | Mapping | None, env) -> tuple[Learner, Callable]:
+    """SAC as a ``Learner`` and its ``update_at`` for ``scg_algorithms.rl.learner.make_train``."""
+    config = parse_config(config)
+    parts = _parts(config, env)
+    warmup = config.warmup_iterations
+
+    def make_policy(p: PolicyParams):
+        return lambda obs, key=None: parts.policy_fn(p, obs, key)
+
+    learner = Learner(
+        name=NAME,
+        config=config,
+        init=lambda key, params: _init(parts, key, params),
+        update=lambda state, params: _iteration(parts, state, params, count_at_least(state.iteration, warmup)),
+        num_iterations=config.num_iterations,
+        steps_per_iteration=config.transitions_per_iteration,
+        policy_params=policy_params,
+        make_policy=make_policy,
+    )
+    # The iteration index comes from make_train's scan, not from the (possibly vmapped) state, so the warm-up test
+    # stays unbatched under jax.vmap and its lax.cond keeps skipping the gradient steps.
+    return learner, lambda state, params, i: _iteration(parts, state, params, i >= warmup)
+
+
+def make_learner(config: Config | Mapping | None, env) -> Learner:
+    """``scg_algorithms.rl.training.Learner`` for the host driver (``run_training``).
+
+    ``update`` is one iteration; warm-up or learning is chosen from ``runner_state.iteration``, so a chain of
+    ``num_iterations`` updates is the same computation as ``make_train``.
+    """
+    return _learner(config, env)[0]
+
+
 def make_train(config: Config | Mapping | None, env) -> Callable:
-    """``train(key, params) -> (runner_state, metrics)``: the whole budget, jit- and vmap-able (over keys).
+    """``train(key, params) -> (runner_state, metrics)``: the whole budget, jit- and vmap-able (over keys), as
+    ``scg_algorithms.rl.learner.make_train`` of SAC's learner.
 
     Args:
         config: a ``Config`` or a ``training.sac`` mapping. env: an ``scg_jax.Env`` (any ``action_mode``).
@@ -342,51 +403,4 @@ def make_train(config: Config | Mapping | None, env) -> Callable:
         steps of ``critic_loss``, ``actor_loss``, ``alpha_loss``, ``alpha``, ``entropy``, ``q_mean`` (0 during
         warm-up).
     """
-    config = parse_config(config)
-    parts = _build(config, env)
-    warmup = config.warmup_iterations
-
-    def train(key, params):
-        state = parts.init(key, params)
-        # The iteration index comes from the scan's xs, not from the (possibly vmapped) state, so the warm-up
-        # test stays unbatched under jax.vmap and its lax.cond keeps skipping the gradient steps.
-        return jax.lax.scan(
-            lambda s, i: parts.iteration(s, params, i >= warmup), state, jnp.arange(config.num_iterations)
-        )
-
-    return train
-
-
-def policy_params(state: RunnerState) -> PolicyParams:
-    """The part of the runner state a policy needs (saved as ``policy.msgpack`` by the host driver)."""
-    return PolicyParams(actor=state.actor, obs_stats=state.collector.obs_stats)
-
-
-def make_learner(config: Config | Mapping | None, env):
-    """``scg_algorithms.rl.training.Learner`` for the host driver (``run_training``).
-
-    ``update`` is one iteration; warm-up or learning is chosen from ``runner_state.iteration``, so a chain of
-    ``num_iterations`` updates is the same computation as ``make_train``.
-    """
-
-    config = parse_config(config)
-    parts = _build(config, env)
-    warmup = config.warmup_iterations
-    policy_fn = make_policy_fn(config, parts.train_env.action_size)
-
-    def update(state: RunnerState, params):
-        return parts.iteration(state, params, count_at_least(state.iteration, warmup))
-
-    def make_policy(p: PolicyParams):
-        return lambda obs, key=None: policy_fn(p, obs, key)
-
-    return Learner(
-        name=NAME,
-        config=config,
-        init=parts.init,
-        update=update,
-        num_iterations=config.num_iterations,
-        steps_per_iteration=config.transitions_per_iteration,
-        policy_params=policy_params,
-        make_policy=make_policy,
-    )
+    return learner_lib.make_train(*_learner(config, env))

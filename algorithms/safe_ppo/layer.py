@@ -133,8 +133,8 @@ def pretrain(config, train_env, key, params, rows):
         return ActOutput(jax.random.uniform(step_key, (n, d), obs.dtype, -1.0, 1.0), {})
 
     def dataset(collector, collect_key, num_steps):
-        collector, steps, _ = collect(train_env, params, collector, random_act, collect_key, num_steps // n,
-                                      update_normalizer=False)  # fmt: skip
+        collector, steps, _, _ = collect(train_env, params, collector, random_act, collect_key, num_steps // n,
+                                         update_normalizer=False)  # fmt: skip
         flat = lambda x: jnp.reshape(x, (-1, *x.shape[2:]))  # noqa: E731
         obs, next_obs = flat(steps.obs), flat(steps.next_obs)
         data = (obs, flat(steps.action), constraint_values(layer_rows, obs), constraint_values(layer_rows, next_obs))

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from scg_algorithms.base import parse_options
 from scg_algorithms.ppo.train import Variant, make_variant_learner
-from scg_algorithms.rl.config import parse_learner_config
 from scg_algorithms.rl.envs import make_train_env
 from scg_algorithms.rl.training import Learner, raw_key
 from scg_algorithms.safe_ppo import layer as layer_lib
@@ -50,7 +50,7 @@ def make_learner(config, env, params=None) -> Learner:
         ValueError: a bad option (named ``training.safe_ppo.<field>``) or an env without state constraints
             (named ``env.constraints``).
     """
-    config = parse_learner_config(Config, config, PATH)
+    config = parse_options(Config, config, PATH)
     check_params = env.default_params if params is None else params
     A, _ = layer_lib.state_constraint_rows(env, check_params)
     slack = _slack(config, A.shape[0])

@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from scg_algorithms.base import Reference
+from scg_jax.caching import CompileCache
 
 # |correction| above this (N) counts as an intervention. Below it is round-off or an iterative solver's tolerance
 # (the batched MPSC's ADMM in float32 leaves corrections of ~1e-8 N on inputs it passes): 0.1 mN moves no actuator
@@ -251,15 +252,12 @@ class FilteredController:
         )  # fmt: skip
 
 
-_JITTED: dict = {}
+# certify_fn is a closure built with the filter (not a bound method), so an entry never keeps its filter alive.
+_JITTED = CompileCache(maxsize=32)
 
 
 def _jitted_certify(safety_filter):
-    entry = _JITTED.get(id(safety_filter))
-    if entry is None or entry[0] is not safety_filter:
-        entry = (safety_filter, jax.jit(safety_filter.certify_fn))
-        _JITTED[id(safety_filter)] = entry
-    return entry[1]
+    return _JITTED.get("certify", lambda: jax.jit(safety_filter.certify_fn), owners=(safety_filter,))
 
 
 def filtered(controller, safety_filter, env=None) -> FilteredController:

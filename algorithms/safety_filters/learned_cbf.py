@@ -53,7 +53,7 @@ class Options(cbf_lib.Options):
     """The CBF's options (``scg_algorithms.safety_filters.cbf.Options``) and the learning ones; a config's
     ``safety_filters.learned_cbf`` section. Errors name ``safety_filters.learned_cbf.KEY``."""
 
-    hidden_sizes: tuple | None = option((64.0, 64.0), "hidden layer sizes of the MLP x -> (a, b)")
+    hidden_sizes: tuple | None = option((64, 64), "hidden layer sizes of the MLP x -> (a, b)")
     activation: str = option("relu", "hidden activation", ("relu", "tanh", "elu", "gelu", "silu"))
     num_episodes: int = option(20, "blending episodes (the first uncertified, the last fully certified)")
     num_copies: int = option(256, "env copies that run each blending episode at once")
@@ -112,16 +112,14 @@ def make_learned_cbf(env, prior_params, options=None, net_params=None):
 
 
 # --------------------------------------------------------------------------------------------- training
-def _collector(env, params, flt, prior_step, num_copies: int):
-    """``collect(net_params, weight, keys (C,)) -> (x (C, T, nx), u (C, T, nu), valid (C, T), residual (C, T, m))``:
-    one blending episode of ``C`` copies; ``residual`` is the regression target (module docstring)."""
-    from scg_algorithms.safety_filters.uncertified import random_input
-
-    uncertified = random_input(env, params)
+def _collector(env, flt, prior_step, uncertified):
+    """``collect(net_params, weight, keys (C,), params, filter_params) -> (x (C, T, nx), u (C, T, nu), valid (C, T),
+    residual (C, T, m))``: one blending episode of ``C`` copies of the plant ``params`` under ``uncertified`` and the
+    filter with ``filter_params`` (its network left out); ``residual`` is the regression target (module docstring).
+    Compiled once per shapes: the plant, the filter's parameters and the network are arguments."""
     nx = env.nx
-    base_params = flt.params
 
-    def one_copy(net_params, weight, key):
+    def one_copy(net_params, weight, key, params, base_params):
         filter_params = {**base_params, "correction": net_params}
         env_key, ctrl_key = jax.random.split(key)
         obs, state = env.reset(env_key, params)
@@ -142,7 +140,7 @@ def _collector(env, params, flt, prior_step, num_copies: int):
         _, records = jax.lax.scan(body, (obs, state, ctrl_state), None, length=env.num_steps)
         return records
 
-    return jax.jit(jax.vmap(one_copy, in_axes=(None, None, 0)))
+    return jax.jit(jax.vmap(one_copy, in_axes=(None, None, 0, None, None)))
 
 
 def _barrier_values(flt, params, x):
@@ -174,7 +172,14 @@ def _trainer(network, m: int, nu: int, opts: Options):
         )
         return net_params, opt_state, losses[-1]
 
-    rmse = jax.jit(lambda p, x, u, r: jnp.sqrt(loss_fn(p, x, u, r)))
+    @jax.jit
+    def rmse(net_params, x, u, r, mask):
+        """RMSE of the correction over the rows of ``mask`` (an episode's fixed-size records: one compilation)."""
+        out = jax.vmap(lambda xi: network.apply(net_params, xi))(x).reshape(-1, m, nu + 1)
+        predicted = jnp.einsum("bmu,bu->bm", out[:, :, :nu], u) + out[:, :, nu]
+        squared = jnp.where(mask[:, None], jnp.square(predicted - r), 0.0)
+        return jnp.sqrt(jnp.sum(squared) / (jnp.maximum(jnp.sum(mask), 1) * m))
+
     return optimizer, train, rmse
 
 
@@ -230,6 +235,7 @@ def train_learned_cbf(env, params, prior_params, options=None, progress=None) ->
         the prior-only error on the same data), ``loss`` (last minibatch loss), ``wall_s``.
     """
     from scg_algorithms.controller_setup import prior_step_fn
+    from scg_algorithms.safety_filters.uncertified import random_input
 
     opts = parse_options(Options, options, PATH)
     flt = make_learned_cbf(env, prior_params, opts)
@@ -238,16 +244,15 @@ def train_learned_cbf(env, params, prior_params, options=None, progress=None) ->
     network = _network(opts, m, nu)
     net_params = flt.params["correction"]
     prior_step = prior_step_fn(env, prior_params, "env")
-    collect = _collector(env, params, flt, prior_step, opts.num_copies)
+    collect = _collector(env, flt, prior_step, random_input(env, params))
     optimizer, train, rmse = _trainer(network, m, nu, opts)
     opt_state = optimizer.init(net_params)
     evaluate_fn = _evaluator(env, params, flt, opts.eval_episodes)
 
+    # Host buffers of every transition so far, passed whole to the compiled training step (one shape throughout).
     capacity = opts.num_episodes * opts.num_copies * env.num_steps
-    dtype = jnp.result_type(float)
-    X = jnp.zeros((capacity, nx), dtype)
-    U = jnp.zeros((capacity, nu), dtype)
-    R = jnp.zeros((capacity, m), dtype)
+    dtype = np.dtype(jnp.result_type(float))
+    X, U, R = (np.zeros((capacity, n), dtype) for n in (nx, nu, m))
     count = 0
     key = jax.random.key(opts.seed)
     key, eval_key = jax.random.split(key)
@@ -265,21 +270,18 @@ def train_learned_cbf(env, params, prior_params, options=None, progress=None) ->
     for episode in range(opts.num_episodes):
         weight = episode / (opts.num_episodes - 1) if opts.num_episodes > 1 else 1.0
         key, data_key, train_key = jax.random.split(key, 3)
-        x, u, valid, residual = collect(
-            net_params, jnp.asarray(weight, dtype), jax.random.split(data_key, opts.num_copies)
+        records = collect(
+            net_params, jnp.asarray(weight, dtype), jax.random.split(data_key, opts.num_copies), params, flt.params
         )
-        keep = np.asarray(valid).reshape(-1)
-        x = np.asarray(x).reshape(-1, nx)[keep]
-        u = np.asarray(u).reshape(-1, nu)[keep]
-        r = np.asarray(residual).reshape(-1, m)[keep]
-        finite = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(r), axis=1)
-        x, u, r = x[finite], u[finite], r[finite]
-        heldout = float(rmse(net_params, x, u, r)) if len(x) else float("nan")
-        prior_rmse = float(np.sqrt(np.mean(np.square(r)))) if len(x) else float("nan")
-        n_new = min(len(x), capacity - count)
-        X = X.at[count : count + n_new].set(x[:n_new])
-        U = U.at[count : count + n_new].set(u[:n_new])
-        R = R.at[count : count + n_new].set(r[:n_new])
+        x, u, valid, r = (np.asarray(a).reshape(opts.num_copies * env.num_steps, -1) for a in records)
+        keep = valid[:, 0] & np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(r), axis=1)
+        x, u, r = (np.where(keep[:, None], a, 0.0).astype(dtype) for a in (x, u, r))
+        heldout = float(rmse(net_params, x, u, r, keep)) if keep.any() else float("nan")
+        prior_rmse = float(np.sqrt(np.mean(np.square(r[keep])))) if keep.any() else float("nan")
+        n_new = min(int(keep.sum()), capacity - count)
+        X[count : count + n_new], U[count : count + n_new], R[count : count + n_new] = (
+            a[keep][:n_new] for a in (x, u, r)
+        )
         count += n_new
         net_params, opt_state, loss = train(net_params, opt_state, train_key, X, U, R, max(count, 1))
         evaluation = evaluate_fn(net_params, eval_key, params)

@@ -61,13 +61,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from scg_algorithms import controller_setup as setup
-from scg_algorithms.base import option, parse_options, positive, weight_diagonal
+from scg_algorithms.base import option, parse_options, positive
 from scg_algorithms.lqr import discrete_lqr_gain
 from scg_algorithms.mpc import qp as qp_lib
 from scg_algorithms.mpc.linear import _constraint_rows
 from scg_algorithms.safety_filters import mpsc_admm
 from scg_algorithms.safety_filters import mpsc_tightening as tight
 from scg_algorithms.safety_filters.base import FilterInfo, JaxFilter
+from scg_jax.validation import weight_matrix
 
 PATH = "safety_filters.linear_mpsc"
 CASADI_PATH = "safety_filters.linear_mpsc_casadi"
@@ -170,10 +171,10 @@ def build_problem(env, prior_params, options=None, plant_params=None, path: str 
     """
     opts = parse_options(Options, options, path)
     nx, nu, H = env.nx, env.nu, opts.horizon
-    q = weight_diagonal(f"{path}.q_lqr", opts.q_lqr, (1.0,) * nx, nx)
-    r = weight_diagonal(f"{path}.r_lqr", opts.r_lqr, (1.0,) * nu, nu)
-    if min(r) <= 0:
-        raise ValueError(f"{path}.r_lqr: the LQR input weight must be positive, got {list(r)}")
+    Q_lqr = np.eye(nx) if opts.q_lqr is None else weight_matrix(opts.q_lqr, f"{path}.q_lqr", nx, diagonal_only=True)
+    R_lqr = np.eye(nu) if opts.r_lqr is None else weight_matrix(opts.r_lqr, f"{path}.r_lqr", nu, diagonal_only=True)
+    if np.diag(R_lqr).min() <= 0:
+        raise ValueError(f"{path}.r_lqr: the LQR input weight must be positive, got {np.diag(R_lqr).tolist()}")
     if opts.sample_half_width is not None and len(opts.sample_half_width) != nx:
         raise ValueError(f"{path}.sample_half_width: expected {nx} values, got {len(opts.sample_half_width)}")
     model = setup.prior_model(env, prior_params, opts.discretization)
@@ -181,7 +182,7 @@ def build_problem(env, prior_params, options=None, plant_params=None, path: str 
     u_bar = setup.equilibrium_input(env, prior_params)
     Ad, Bd, c = setup.linearize_along(model, x_bar[None], u_bar)
     try:
-        K, _ = discrete_lqr_gain(Ad[0], Bd[0], np.diag(q), np.diag(r))
+        K, _ = discrete_lqr_gain(Ad[0], Bd[0], Q_lqr, R_lqr)
     except ValueError as error:
         raise ValueError(f"{path}.q_lqr: the ancillary LQR has no stabilising solution ({error})") from None
     affine = qp_lib.AffineModel(Ad=Ad, Bd=Bd, c=c, x_bar=x_bar[None], u_bar=u_bar, K=K[None], P=np.zeros((1, nx, nx)))

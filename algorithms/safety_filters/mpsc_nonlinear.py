@@ -31,11 +31,12 @@ import dataclasses
 import numpy as np
 
 from scg_algorithms import controller_setup as setup
-from scg_algorithms.base import option, parse_options, positive, weight_diagonal
+from scg_algorithms.base import option, parse_options, positive
 from scg_algorithms.lqr import discrete_lqr_gain
 from scg_algorithms.mpc.linear import _constraint_rows
 from scg_algorithms.safety_filters import mpsc_tightening as tight
 from scg_algorithms.safety_filters.base import FilterInfo
+from scg_jax.validation import weight_matrix
 
 PATH = "safety_filters.nonlinear_mpsc"
 TIGHTENINGS = ("reachable", "none")
@@ -100,10 +101,10 @@ class NonlinearMPSC:
         self.options = opts
         self.system = env.system.name
         nx, nu, H = self.nx, self.nu, self.horizon = env.nx, env.nu, opts.horizon
-        q = weight_diagonal(f"{PATH}.q_lqr", opts.q_lqr, (1.0,) * nx, nx)
-        r = weight_diagonal(f"{PATH}.r_lqr", opts.r_lqr, (1.0,) * nu, nu)
-        if min(r) <= 0:
-            raise ValueError(f"{PATH}.r_lqr: the LQR input weight must be positive, got {list(r)}")
+        Q_lqr = np.eye(nx) if opts.q_lqr is None else weight_matrix(opts.q_lqr, f"{PATH}.q_lqr", nx, diagonal_only=True)
+        R_lqr = np.eye(nu) if opts.r_lqr is None else weight_matrix(opts.r_lqr, f"{PATH}.r_lqr", nu, diagonal_only=True)
+        if np.diag(R_lqr).min() <= 0:
+            raise ValueError(f"{PATH}.r_lqr: the LQR input weight must be positive, got {np.diag(R_lqr).tolist()}")
         if opts.sample_half_width is not None and len(opts.sample_half_width) != nx:
             raise ValueError(f"{PATH}.sample_half_width: expected {nx} values, got {len(opts.sample_half_width)}")
         model = setup.prior_model(env, prior_params, opts.discretization)
@@ -111,7 +112,7 @@ class NonlinearMPSC:
         self.u_eq = setup.equilibrium_input(env, prior_params)
         lin = model.linearize(self.x_goal, self.u_eq)
         try:
-            self.K, _ = discrete_lqr_gain(lin.Ad, lin.Bd, np.diag(q), np.diag(r))
+            self.K, _ = discrete_lqr_gain(lin.Ad, lin.Bd, Q_lqr, R_lqr)
         except ValueError as error:
             raise ValueError(f"{PATH}.q_lqr: the ancillary LQR has no stabilising solution ({error})") from None
         rows, _, _, self.u_low, self.u_high = _constraint_rows(env, prior_params, True)

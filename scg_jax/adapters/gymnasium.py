@@ -55,7 +55,6 @@ import dataclasses
 import functools
 import json
 import threading
-from collections import OrderedDict
 from collections.abc import Iterable
 
 import gymnasium
@@ -67,6 +66,7 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv, VectorWrapper
 from gymnasium.vector.utils import batch_space
 
+from scg_jax.caching import CompileCache
 from scg_jax.config import Config, EnvConfig, load_config, make_from_config
 from scg_jax.env import Env, EnvParams, EnvState, make
 from scg_jax.rollout import initial_reset_keys, next_reset_key, restart_done, select_where
@@ -78,7 +78,6 @@ DEFAULT_ACTION_MODE = "normalized"
 DEFAULT_REWARD_TYPE = "exponential"
 RENDER_MODES = ("rgb_array",)
 _MAX_SEED = 2**31 - 1
-_CACHE_SIZE = 16
 
 
 # ============================================================================================== options
@@ -110,16 +109,10 @@ def _resolve_options(system, task, config, overrides, make_options) -> tuple[str
     return cfg.env.system, cfg.env.task, cfg.env.make_options(), cfg
 
 
-def _canonical(value):
-    """Plain, JSON-able data with a single spelling per value (the cache key of a set of options)."""
-    if isinstance(value, dict):
-        return {str(k): _canonical(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_canonical(v) for v in value]
+def _plain_array(value):
+    """``json.dumps``'s ``default``: arrays and numpy scalars as lists and numbers; anything else is not plain data."""
     if isinstance(value, np.ndarray | np.generic | jax.Array):
-        return _canonical(np.asarray(value).tolist())
-    if value is None or isinstance(value, bool | int | float | str):
-        return value
+        return np.asarray(value).tolist()
     raise TypeError(f"not plain data: {type(value).__name__}")
 
 
@@ -272,35 +265,28 @@ class _Compiled:
         return next_state, terminated | truncated, (obs.astype(jnp.float32), reward, terminated, truncated, info)
 
 
-_CACHE: OrderedDict = OrderedDict()
-_CACHE_LOCK = threading.Lock()
+# Adapter instances made with the same options share one _Compiled (the env and its jitted functions).
+_CACHE = CompileCache(maxsize=16)
 
 
 def _compiled(system: str, task: str, options: dict, config: Config | None = None) -> _Compiled:
-    """The ``_Compiled`` of these options, from a small LRU cache (built on a miss)."""
+    """The ``_Compiled`` of these options, from the cache (built on a miss)."""
+
+    def build():
+        if config is not None:  # make_from_config prefixes make's errors with the dotted config path
+            env, params = make_from_config(config)
+        else:
+            env = make(system, task, **options)
+            params = env.default_params
+        return _Compiled(env, params)
+
     try:
-        # The default float dtype (jax_enable_x64) decides the params' dtype, so it is part of the key.
-        key = json.dumps([system, task, _canonical(options), str(jnp.zeros(()).dtype)], sort_keys=True)
+        # The default float dtype (jax_enable_x64) decides the params' dtype, so it is part of the key; one spelling
+        # per value (tuples and arrays as lists, sorted keys).
+        key = json.dumps([system, task, options, str(jnp.zeros(()).dtype)], sort_keys=True, default=_plain_array)
     except TypeError:  # options that are not plain data: build without caching
-        key = None
-    if key is not None:
-        with _CACHE_LOCK:
-            if key in _CACHE:
-                _CACHE.move_to_end(key)
-                return _CACHE[key]
-    if config is not None:  # make_from_config prefixes make's errors with the dotted config path
-        env, params = make_from_config(config)
-    else:
-        env = make(system, task, **options)
-        params = env.default_params
-    compiled = _Compiled(env, params)
-    if key is not None:
-        with _CACHE_LOCK:
-            compiled = _CACHE.setdefault(key, compiled)
-            _CACHE.move_to_end(key)
-            while len(_CACHE) > _CACHE_SIZE:
-                _CACHE.popitem(last=False)
-    return compiled
+        return build()
+    return _CACHE.get(key, build)
 
 
 def _build(system, task, config, overrides, make_options) -> _Compiled:
