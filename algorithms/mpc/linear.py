@@ -112,7 +112,7 @@ class Options(setup.MPCOptions):
         "started) or qpax (dense interior point)",
         choices=SOLVERS,
     )
-    admm_max_iter: int = option(200, "admm: iterations at most per step")
+    admm_max_iter: int = option(1000, "admm: iterations at most per step (each copy stops when converged)")
     admm_tol: float = option(
         1e-5, "admm: absolute and relative residual tolerance on the scaled QP (0: always run admm_max_iter)"
     )
