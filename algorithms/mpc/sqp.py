@@ -24,8 +24,10 @@ merit_weight``), or by the smallest when none does.
 - ``solver="sqp"``: iterates until the largest input change of an iteration is below ``sqp_tol`` (N) or
   ``sqp_max_iter`` iterations (a ``lax.while_loop``; under ``vmap`` the batch runs until its slowest copy stops).
 - ``solver="sqp_rti"``: one iteration per control step about the previous plan shifted by one step (its last
-  input held, the last state propagated through ``f_d``), the real-time iteration of Diehl et al. (2005). Without a
-  plan (the first step) it iterates as ``sqp`` does, from the measured state held and the equilibrium input.
+  input held, the last state propagated through ``f_d``), the real-time iteration of Diehl et al. (2005), with the
+  full step (no line search: a partial step is a weaker input, and the next step corrects the plan anyway).
+  Without a plan (the first step) it iterates as ``sqp`` does, from the measured state held and the equilibrium
+  input.
 
 **Failure**: a QP that is infeasible, non-finite, or whose plan violates a hard row by more than
 ``fallback_tol`` moves nothing; when the very first iteration fails, the input is the shifted previous plan's
@@ -190,7 +192,7 @@ def make_sqp_mpc(env, prior_params, opts) -> JaxController:
         violation = jnp.sum(jnp.maximum(jax.vmap(g_rows)(x[1:], u), 0.0)) if (m and not soft) else 0.0
         return J + opts.merit_weight * (defects + violation)
 
-    def iteration(x0, window, x_bar, u_bar, warm):
+    def iteration(x0, window, x_bar, u_bar, warm, full_step):
         qp = linearize(x_bar, u_bar)
         qp = qp._replace(q=-jnp.einsum("kxy,ky->kx", Qs, window[1:]))
         sol = structured.solve(layout, qp, x0, warm, settings)
@@ -203,9 +205,10 @@ def make_sqp_mpc(env, prior_params, opts) -> JaxController:
             return merit(x_bar + a * (sol.x - x_bar), u_bar + a * (sol.u - u_bar), x0, window)
 
         merits = jax.vmap(trial)(fractions)
-        better = merits < base
+        # Round-off of the merit (float32: defects of 1e-7 m weighed by merit_weight) must not reject a step.
+        better = merits <= base + 8 * jnp.finfo(dtype).eps * jnp.abs(base)
         a = jnp.where(jnp.any(better), fractions[jnp.argmax(better)], fractions[-1])
-        a = jnp.where(ok, a, 0.0)
+        a = jnp.where(ok, jnp.where(full_step, 1.0, a), 0.0)
         x_new = x_bar + a * (sol.x - x_bar)
         u_new = jnp.clip(u_bar + a * (sol.u - u_bar), u_low_j, u_high_j)
         change = jnp.max(jnp.abs(u_new - u_bar))
@@ -258,7 +261,7 @@ def make_sqp_mpc(env, prior_params, opts) -> JaxController:
 
         def body(carry):
             x, u, warm, status, qp_it, first_ok, it, _, _ = carry
-            x, u, ok, sol, change = iteration(x0, window, x, u, warm)
+            x, u, ok, sol, change = iteration(x0, window, x, u, warm, rti & have_plan)
             first_ok = jnp.where(it == 0, ok == 1, first_ok)
             warm = jax.tree.map(lambda a, b: jnp.where(ok == 1, a, b), sol.warm, warm)
             return x, u, warm, sol.status, qp_it + sol.iterations, first_ok, it + 1, change, ok == 1
