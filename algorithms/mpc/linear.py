@@ -3,9 +3,11 @@
 Two controllers share one ``Options`` dataclass (a config file's ``controllers.linear_mpc`` and
 ``controllers.linear_mpc_casadi`` sections; the qpax fields are ignored by the CasADi one):
 
-- ``make_linear_mpc`` (registered ``"linear_mpc"``): a ``JaxController`` whose ``act`` forms the right-hand side
-  of the condensed QP of ``scg_algorithms.mpc.qp`` and solves it with ``qpax`` (a primal-dual interior-point method in
-  JAX); ``jax.vmap`` runs thousands of copies at once.
+- ``make_linear_mpc`` (registered ``"linear_mpc"``): a ``JaxController`` whose ``act`` solves the QP with the
+  structured horizon-QP solver (``solver="admm"``, default: ``scg_algorithms.mpc.structured``, prepared once on the
+  host when the model is the same at every stage, warm-started from the previous step's shifted plan) or forms
+  the right-hand side of the condensed QP of ``scg_algorithms.mpc.qp`` and solves it with ``qpax``
+  (``solver="qpax"``, a primal-dual interior-point method in JAX); ``jax.vmap`` runs thousands of copies at once.
 - ``make_linear_mpc_casadi`` (registered ``"linear_mpc_casadi"``): the same problem for one copy on the host in the
   form of ``casadi.Opti("conic")`` (inputs as the only variables, states as expressions of them; no
   pre-stabilisation) with qpOASES (default) or OSQP; the constraints are the symbolic model's own ``g`` functions.
@@ -37,8 +39,9 @@ Problem at control step ``k`` (observed state ``x_0``, reference ``r_j = x_ref[m
   (``slack_per_stage=True``; see ``scg_algorithms.mpc.qp`` for how the two behave), at the cost
   ``slack_l1 * e + 1/2 slack_l2 * e^2`` per slack, so the QP stays feasible when the plant is already outside
   or cannot avoid leaving the constraint set; input rows stay hard.
-- **Failure handling** (JAX): every solve is checked (status in ``ctrl_state``; ``scg_algorithms.mpc.qp``). A finite
-  iterate feasible within ``feasibility_tol`` is used even if qpax did not report convergence (float32 limits the
+- **Failure handling** (JAX): every solve is checked (status in ``ctrl_state``; ``scg_algorithms.mpc.structured``
+  or ``scg_algorithms.mpc.qp``). A finite iterate feasible within ``feasibility_tol`` is used even if the solver
+  did not report convergence (float32 limits the
   residual it can reach, see ``scg_algorithms.mpc.qp``); a non-finite or infeasible one (an infeasible QP: hard
   state constraints that cannot be met, or input rows that contradict the actuator limits) is replaced by the
   LQR input ``u_eq - K (x_0 - x_ref[k])``. In every case the input is finally clipped to the box of the hard input
@@ -46,8 +49,8 @@ Problem at control step ``k`` (observed state ``x_0``, reference ``r_j = x_ref[m
   the limits; general (non-box) input rows are only held by the QP. The CasADi controller does the same when
   its solver reports failure.
 
-Controller memory (JAX): ``LinearMPCState(status, iterations)`` of the last solve, for diagnostics only
-(``scg_algorithms.mpc.qp.STATUS_*``).
+Controller memory (JAX): ``LinearMPCState(status, iterations, warm, plan_step)``: the last solve's status and
+iterations, and with admm its warm start and the step it was made at.
 """
 
 from __future__ import annotations
