@@ -13,6 +13,7 @@ from scg_algorithms.lqr import make_lqr
 from scg_algorithms.mpc import qp as qp_lib
 from scg_algorithms.mpc import structured
 from scg_algorithms.mpc.linear import make_linear_mpc, make_linear_mpc_casadi
+from tests.control_helpers import env_and_random_states
 
 # Position box inside the default state bounds, so some stages of a perturbed tracking QP press against it.
 QUAD_CONSTRAINTS = [
@@ -279,14 +280,8 @@ def test_admm_linear_mpc_matches_qpoases_to_a_millinewton_with_active_input_and_
     # one by one in float64. The states where qpOASES fails (hard state rows the plant cannot meet; on the 3D
     # quadrotor also some where the ADMM converges to a plan that meets them) are left out of the comparison.
     make_kwargs, offset, spread = PARITY_CASES[system]
-    make_kwargs = dict(make_kwargs)
-    env = scg_jax.make(make_kwargs.pop("system"), **make_kwargs)
-    params = env.default_params
-    reference = Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
-    rng = np.random.default_rng(0)
     count = 100
-    steps = rng.integers(0, reference.x_ref.shape[0] - 1, count) if env.task == "tracking" else np.zeros(count, int)
-    states = reference.x_ref[steps] + offset + rng.uniform(-1.0, 1.0, (count, env.nx)) * np.asarray(spread)
+    env, params, reference, steps, states = env_and_random_states(make_kwargs, spread, count, offset)
     options = {"horizon": 20}
     jax_mpc = make_linear_mpc(env, params, options)
     casadi_mpc = make_linear_mpc_casadi(env, params, options)

@@ -10,6 +10,7 @@ import scg_jax
 from scg_algorithms.base import Reference
 from scg_algorithms.evaluation import evaluate
 from scg_algorithms.mpc.nonlinear import make_nonlinear_mpc
+from tests.control_helpers import env_and_random_states
 
 CASES = {
     # system, make() arguments, half-widths of the random states around a random reference point, count
@@ -25,13 +26,7 @@ def test_sqp_first_input_equals_ipopts(system):
     # quadrotor inputs 3.4e-4 N inside the 0.05632 N bound that SQP and IPOPT at 1e-10 put it on); SQP until no
     # input moves by 1e-6 N.
     kwargs, spread, count = CASES[system]
-    kwargs = dict(kwargs)
-    env = scg_jax.make(kwargs.pop("system"), **kwargs)
-    params = env.default_params
-    reference = Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
-    rng = np.random.default_rng(0)
-    steps = rng.integers(0, reference.x_ref.shape[0] - 1, count) if env.task == "tracking" else np.zeros(count, int)
-    states = reference.x_ref[steps] + rng.uniform(-1.0, 1.0, (count, env.nx)) * np.asarray(spread)
+    env, params, reference, steps, states = env_and_random_states(kwargs, spread, count)
     ipopt = make_nonlinear_mpc(env, params, {"horizon": 20, "tol": 1e-10})
     pairs = zip(steps, states, strict=True)
     u_ipopt = np.array([ipopt.act(ipopt.reset(None, reference), x, k, reference)[0] for k, x in pairs])
