@@ -430,7 +430,8 @@ def measure_qp_solvers(name: str, with_state: bool, args) -> dict:
     options = {"horizon": args.horizon}
     controllers = {solver: make_linear_mpc(env, params, {**options, "solver": solver}) for solver in ("admm", "qpax")}
     # A fixed iteration count (no copy waits for another): the throughput setting, with its own parity error.
-    fixed = {"admm_tol": 0.0, "admm_max_iter": FIXED_ITERATIONS}
+    fixed = {"admm_tol": 0.0, "admm_max_iter": FIXED_ITERATIONS, "admm_check_every": FIXED_ITERATIONS}
+    fixed["admm_polish_rounds"] = 0
     controllers["admm_fixed"] = make_linear_mpc(env, params, {**options, **fixed})
     row = {"system": name, "constraints": "input and state" if with_state else "input", "batches": {}}
     count = args.parity_states
@@ -568,8 +569,9 @@ def write_solvers_markdown(path, qp_rows: list[dict], rti_rows: list[dict], meta
     notes = f"""
 Linear MPC, horizon {meta["config"]["horizon"]}, float32, random states around the reference (the parity tests'
 sets; u0 error over the states qpOASES solves). admm: `scg_algorithms.mpc.structured` with linear MPC's defaults
-(tolerance 1e-5, at most 1,000 iterations, each batch runs until its slowest copy converges; "50 it.": tolerance 0,
-exactly 50 iterations and the polish, the throughput setting, with its own largest u0 error); qpax: 40 interior-point
+(tolerance 1e-5, at most 1,000 iterations and 3 rounds of active-set polish, each batch runs until its slowest copy
+converges; "50 it.": tolerance 0, exactly 50 iterations, no polish: the throughput setting, with its own largest u0
+error); qpax: 40 interior-point
 iterations; qpOASES and OSQP: `linear_mpc_casadi`, one problem at a time on the host. env: one vmapped `env.step`.
 Load average at the start and end: {meta["load_average"]} / {meta["load_average_end"]}.
 """ + "\n".join(rti_lines)

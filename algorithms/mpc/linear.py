@@ -120,6 +120,9 @@ class Options(setup.MPCOptions):
         1e-5, "admm: absolute and relative residual tolerance on the scaled QP (0: always run admm_max_iter)"
     )
     admm_check_every: int = option(5, "admm: iterations between residual checks and step-size updates")
+    admm_polish_rounds: int = option(
+        3, "admm: active-set polish rounds after the ADMM (0: none; cheaper per step, less accurate at few iterations)"
+    )
     warm_start: bool = option(True, "admm: start from the previous step's plan and multipliers, shifted")
     max_iter: int = option(40, "qpax interior-point iterations at most (float32 solves rarely stop earlier)")
     solver_tol: float = option(
@@ -136,7 +139,7 @@ class Options(setup.MPCOptions):
                 raise ValueError(f"{path}.{name}: must be a positive integer, got {getattr(self, name)!r}")
         for name in ("solver_tol", "feasibility_tol"):
             positive(f"{path}.{name}", getattr(self, name))
-        for name in ("slack_l1", "slack_l2", "admm_tol"):
+        for name in ("slack_l1", "slack_l2", "admm_tol", "admm_polish_rounds"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
         if self.soft_constraints and self.slack_l1 == 0 and self.slack_l2 == 0:
@@ -392,6 +395,7 @@ def structured_mpc(problem: Problem) -> StructuredMPC:
         check_every=opts.admm_check_every,
         eps_abs=opts.admm_tol,
         eps_rel=opts.admm_tol,
+        polish_rounds=opts.admm_polish_rounds,
     )
     stage_Q = np.stack([problem.Q] * (H - 1) + [affine.P[0]])
     m = C.shape[0]
