@@ -163,6 +163,9 @@ def make_sqp_mpc(env, prior_params, opts) -> JaxController:
         eps_abs=opts.qp_tol,
         eps_rel=opts.qp_tol,
         rho=structured.suggested_rho(layout, template),
+        # A step size that adapts costs a Cholesky per check and copy under vmap (lax.cond runs both branches):
+        # fixed at the template's, an SQP-RTI step of 1,024 2D quadrotors took 0.59 ms per copy instead of 1.16.
+        adaptive_rho=False,
     )
     rti = opts.solver == "sqp_rti"
     max_iter = opts.sqp_max_iter
