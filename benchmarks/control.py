@@ -58,9 +58,10 @@ from rich.console import Console
 from rich.table import Table
 from throughput import measure_pair  # benchmarks/throughput.py: compile, calibrate, alternate timed runs
 
+import scg_jax
 from scg_algorithms.base import Reference
 from scg_algorithms.evaluation import evaluate
-from scg_algorithms.mpc.linear import make_linear_mpc
+from scg_algorithms.mpc.linear import make_linear_mpc, make_linear_mpc_casadi
 from scg_algorithms.mpc.nonlinear import make_nonlinear_mpc
 from scg_jax.config import load_config, make_from_config
 from scg_jax.files import write_json
@@ -78,13 +79,66 @@ FULL_DEFAULTS = {"episodes": 2, "batch": 1024, "repeats": 5, "min_time": 0.5}
 QUICK_DEFAULTS = {"episodes": 1, "batch": 256, "repeats": 2, "min_time": 0.05}
 
 
+SOLVERS_MARKDOWN = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "mpc_solvers.md"
+# The solvers part: per system, make() arguments, the state constraints added in the "state" variant, the random
+# states (offset and half-widths around a reference point; the linear MPC parity tests' sets) and the closed-loop
+# task of SQP-RTI against IPOPT.
+_INPUT = [{"type": "default", "on": "input"}]
+SOLVER_CASES = {
+    "cartpole": (
+        {"system": "cartpole"},
+        [{"type": "bounded", "on": "state", "active_dims": [0], "low": [-0.3], "high": [0.3]}],
+        0.0,
+        [0.25, 0.5, 0.3, 0.5],
+    ),
+    "quadrotor_1d": (
+        {"system": "quadrotor_1d", "goal": [1.8, 0.0]},
+        [{"type": "bounded", "on": "state", "active_dims": [0], "low": [-10.0], "high": [1.5]}],
+        [-0.6, 0.0],
+        [0.3, 1.0],
+    ),
+    "quadrotor_2d": (
+        {"system": "quadrotor_2d", "task": "tracking"},
+        [
+            {"type": "default", "on": "state"},
+            {"type": "bounded", "on": "state", "active_dims": [0, 2], "low": [-0.52, 0.48], "high": [0.52, 1.52]},
+        ],
+        0.0,
+        [0.1, 0.3, 0.1, 0.3, 0.3, 0.5],
+    ),
+    "quadrotor_3d": (
+        {"system": "quadrotor_3d", "goal": [0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0]},
+        [
+            {
+                "type": "bounded",
+                "on": "state",
+                "active_dims": [0, 2, 4],
+                "low": [-0.3, -0.3, 0.7],
+                "high": [0.3, 0.3, 1.3],
+            }
+        ],
+        0.0,
+        [0.3, 0.5] * 3 + [0.2] * 3 + [0.5] * 3,
+    ),
+}
+
+
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         description="Nonlinear (IPOPT) MPC time per step and batched linear (qpax) MPC solves per second.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     parser.add_argument("--systems", nargs="+", default=list(CONFIGS), choices=list(CONFIGS), help="systems")
-    parser.add_argument("--parts", nargs="+", default=["nonlinear", "linear"], choices=["nonlinear", "linear"])
+    parser.add_argument(
+        "--parts", nargs="+", default=["nonlinear", "linear"], choices=["nonlinear", "linear", "solvers"]
+    )
+    parser.add_argument(
+        "--solver-systems", nargs="+", default=list(SOLVER_CASES), choices=list(SOLVER_CASES), help="solvers part"
+    )
+    parser.add_argument("--batches", nargs="+", type=int, default=[1, 1024, 4096], help="solvers part: copies")
+    parser.add_argument("--parity-states", type=int, default=1000, help="solvers part: states compared to qpOASES")
+    parser.add_argument("--rti-episodes", type=int, default=2, help="solvers part: episodes of SQP-RTI and IPOPT")
+    parser.add_argument("--solvers-markdown", type=Path, default=SOLVERS_MARKDOWN, help="solvers part: generated page")
     parser.add_argument(
         "--settings", nargs="+", default=list(SETTINGS), choices=list(SETTINGS), help="nonlinear MPC option sets"
     )
@@ -333,6 +387,197 @@ def measure_linear(env, params, args) -> dict:
     return row
 
 
+# --------------------------------------------------------------------------------------------- solvers part
+def _per_call(fn, args, repeats: int, min_time: float) -> float:
+    """Seconds per call of a jitted ``fn(*args)`` (compiled first; median of ``repeats`` runs of >= min_time)."""
+    jax.block_until_ready(fn(*args))
+    calls, elapsed = 1, 0.0
+    while elapsed < min_time:
+        tick = time.perf_counter()
+        for _ in range(calls):
+            jax.block_until_ready(fn(*args))
+        elapsed = time.perf_counter() - tick
+        calls = calls if elapsed >= min_time else calls * 2
+    runs = []
+    for _ in range(repeats):
+        tick = time.perf_counter()
+        for _ in range(calls):
+            jax.block_until_ready(fn(*args))
+        runs.append((time.perf_counter() - tick) / calls)
+    return float(np.median(runs))
+
+
+def _solver_env(name: str, with_state: bool):
+    kwargs, state_rows, offset, spread = SOLVER_CASES[name]
+    kwargs = dict(kwargs)
+    env = scg_jax.make(kwargs.pop("system"), constraints=_INPUT + (state_rows if with_state else []), **kwargs)
+    return env, env.default_params, np.asarray(offset, dtype=np.float64), np.asarray(spread, dtype=np.float64)
+
+
+def _random_states(env, reference, offset, spread, count, seed):
+    rng = np.random.default_rng(seed)
+    n = reference.x_ref.shape[0]
+    steps = rng.integers(0, n - 1, count) if env.task == "tracking" else np.zeros(count, int)
+    return steps, reference.x_ref[steps] + offset + rng.uniform(-1.0, 1.0, (count, env.nx)) * spread
+
+
+def measure_qp_solvers(name: str, with_state: bool, args) -> dict:
+    """QPs/s of linear MPC with admm and qpax at each batch, CasADi qpOASES and OSQP one at a time, the env's
+    steps/s at each batch, and admm's largest first-input difference from qpOASES over ``parity_states`` states."""
+    env, params, offset, spread = _solver_env(name, with_state)
+    reference = Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
+    reference32 = Reference(*(jnp.asarray(a) for a in reference))
+    options = {"horizon": args.horizon}
+    controllers = {solver: make_linear_mpc(env, params, {**options, "solver": solver}) for solver in ("admm", "qpax")}
+    # A fixed iteration count (no copy waits for another): the throughput setting, with its own parity error.
+    fixed = {"admm_tol": 0.0, "admm_max_iter": FIXED_ITERATIONS, "admm_check_every": FIXED_ITERATIONS}
+    fixed["admm_polish_rounds"] = 0
+    controllers["admm_fixed"] = make_linear_mpc(env, params, {**options, **fixed})
+    row = {"system": name, "constraints": "input and state" if with_state else "input", "batches": {}}
+    count = args.parity_states
+    steps, states = _random_states(env, reference, offset, spread, count, args.seed)
+    # Parity: one vmapped admm call against qpOASES one state at a time.
+    casadi = {s: make_linear_mpc_casadi(env, params, {**options, "casadi_solver": s}) for s in ("qpoases", "osqp")}
+    u_jax = {}
+    for solver in ("admm", "admm_fixed"):
+        c = controllers[solver]
+        act = jax.jit(jax.vmap(lambda x, k, c=c: c.act(c.reset(None, reference32), x, k, reference32)))
+        u_jax[solver] = np.asarray(act(jnp.asarray(states, jnp.float32), jnp.asarray(steps))[0])
+    u_admm = u_jax["admm"]
+    u_ref, feasible, casadi_s = [], [], {}
+    for solver, controller in casadi.items():
+        tick = time.perf_counter()
+        for step, x in zip(steps[:count], states[:count], strict=True):
+            u, info = controller.act({}, x, step, reference)
+            if solver == "qpoases":
+                u_ref.append(u)
+                feasible.append(info["success"])
+        casadi_s[solver] = (time.perf_counter() - tick) / count
+    u_ref, feasible = np.array(u_ref), np.array(feasible)
+    error = np.abs(u_admm - u_ref).max(axis=1)[feasible]
+    lo, hi = controllers["admm"].info["u_low"], controllers["admm"].info["u_high"]
+    at_bound = np.any((np.abs(u_ref - lo) < 1e-6) | (np.abs(u_ref - hi) < 1e-6), axis=1)[feasible]
+    row.update(
+        parity_states=count,
+        parity_feasible=int(feasible.sum()),
+        parity_at_input_bound=float(at_bound.mean()),
+        parity_max_error_N=float(error.max()),
+        parity_median_error_N=float(np.median(error)),
+        parity_max_error_fixed_N=float(np.abs(u_jax["admm_fixed"] - u_ref).max(axis=1)[feasible].max()),
+        qpoases_qps=1.0 / casadi_s["qpoases"],
+        osqp_qps=1.0 / casadi_s["osqp"],
+    )
+    u_eq = jnp.asarray(env.system.equilibrium_input(params.physics), dtype=jnp.float32)
+    env_step = jax.jit(jax.vmap(env.step, in_axes=(0, None, None)))
+    for batch in args.batches:
+        index = np.arange(batch) % count
+        x_b, k_b = jnp.asarray(states[index], jnp.float32), jnp.asarray(steps[index])
+        entry = {}
+        for solver, controller in controllers.items():
+            if solver == "qpax" and batch > 1024:
+                continue  # 0.1-0.5 s per call at 1,024 already; 4,096 adds nothing but minutes
+            fn = jax.jit(jax.vmap(lambda x, k, c=controller: c.act(c.reset(None, reference32), x, k, reference32)))
+            entry[f"{solver}_qps"] = batch / _per_call(fn, (x_b, k_b), args.repeats, args.min_time)
+        keys = jax.random.split(jax.random.key(args.seed), batch)
+        _, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
+        action = env.input_to_action(u_eq, params)
+        entry["env_steps_per_s"] = batch / _per_call(env_step, (state, action, params), args.repeats, args.min_time)
+        row["batches"][batch] = entry
+    return row
+
+
+FIXED_ITERATIONS = 50
+
+RTI_TASKS = {
+    "cartpole": ({"system": "cartpole"}, "stabilization"),
+    "quadrotor_2d": ({"system": "quadrotor_2d", "task": "tracking"}, "circle tracking"),
+    "quadrotor_3d": ({"system": "quadrotor_3d"}, "stabilization"),
+}
+
+
+def measure_rti(name: str, args) -> dict:
+    """SQP-RTI against IPOPT: closed-loop RMSE on the same seeded episodes (5 s) and the time per copy and step
+    (SQP-RTI: one vmapped step of 1,024 copies that have a plan, divided by 1,024; IPOPT: median solve time)."""
+    kwargs, task = RTI_TASKS[name]
+    kwargs = dict(kwargs)
+    env = scg_jax.make(kwargs.pop("system"), episode_len_sec=5.0, **kwargs)
+    params = env.default_params
+    key = jax.random.key(args.seed)
+    ipopt = make_nonlinear_mpc(env, params, {"horizon": args.horizon})
+    rti = make_nonlinear_mpc(env, params, {"horizon": args.horizon, "solver": "sqp_rti"})
+    result_ipopt = evaluate(env, params, ipopt, key, args.rti_episodes, measure_time=False)
+    result_rti = evaluate(env, params, rti, key, args.rti_episodes, measure_time=False)
+    reference = Reference(*env.reference(params))
+    batch = 1024
+    keys = jax.random.split(key, batch)
+    obs, _ = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
+    act = jax.jit(jax.vmap(rti.act, in_axes=(0, 0, None, None)))
+    ctrl = jax.vmap(rti.reset, in_axes=(0, None))(keys, reference)
+    _, ctrl = act(ctrl, obs, jnp.zeros((), jnp.int32), reference)  # the first step iterates; later ones do not
+    rti_s = _per_call(act, (ctrl, obs, jnp.ones((), jnp.int32), reference), args.repeats, args.min_time) / batch
+    ipopt_state = ipopt.reset(None, reference)
+    for step in range(min(env.num_steps, 50)):
+        obs_host = np.asarray(result_ipopt.trajectory["obs"])[step, 0]
+        _, ipopt_state = ipopt.act(ipopt_state, obs_host, step, reference)
+    ipopt_s = float(np.median(ipopt_state.solve_time_s[1:]))
+    return {
+        "system": name,
+        "task": task,
+        "episodes": args.rti_episodes,
+        "rmse_ipopt": result_ipopt.summary["rmse"],
+        "rmse_sqp_rti": result_rti.summary["rmse"],
+        "rmse_ratio": result_rti.summary["rmse"] / result_ipopt.summary["rmse"],
+        "ipopt_s_per_step": ipopt_s,
+        "sqp_rti_s_per_copy_step_1024": rti_s,
+        "time_ratio": rti_s / ipopt_s,
+    }
+
+
+def write_solvers_markdown(path, qp_rows: list[dict], rti_rows: list[dict], meta: dict) -> None:
+    batches = meta["config"]["batches"]
+    columns = ["system", "constraints", "u0 max error vs qpOASES (N)", "feasible / states", "u0 at a bound"]
+    columns += [f"admm QPs/s x{b}" for b in batches]
+    columns += [f"admm {FIXED_ITERATIONS} it. QPs/s x{b}" for b in batches] + [
+        f"admm {FIXED_ITERATIONS} it. max error (N)"
+    ]
+    columns += [f"qpax QPs/s x{b}" for b in batches if b <= 1024]
+    columns += ["qpOASES QPs/s", "OSQP QPs/s"] + [f"env steps/s x{b}" for b in batches]
+    rows = []
+    for r in qp_rows:
+        cells = [r["system"], r["constraints"], f"{r['parity_max_error_N']:.1e}"]
+        cells += [f"{r['parity_feasible']} / {r['parity_states']}", f"{r['parity_at_input_bound']:.2f}"]
+        cells += [r["batches"][b]["admm_qps"] for b in batches]
+        cells += [r["batches"][b]["admm_fixed_qps"] for b in batches] + [f"{r['parity_max_error_fixed_N']:.1e}"]
+        cells += [r["batches"][b]["qpax_qps"] for b in batches if b <= 1024]
+        cells += [r["qpoases_qps"], r["osqp_qps"]] + [r["batches"][b]["env_steps_per_s"] for b in batches]
+        rows.append(cells)
+    rti_lines = [
+        "",
+        "SQP-RTI (JAX, float32) against IPOPT (CasADi, host), horizon "
+        f"{meta['config']['horizon']}, the same seeded 5 s episodes:",
+        "",
+        "| system | task | episodes | RMSE IPOPT | RMSE SQP-RTI | ratio | IPOPT s/step | SQP-RTI s/(copy step) x1024 | "
+        "time ratio |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rti_rows:
+        rti_lines.append(
+            f"| {r['system']} | {r['task']} | {r['episodes']} | {r['rmse_ipopt']:.4f} | {r['rmse_sqp_rti']:.4f} | "
+            f"{r['rmse_ratio']:.4f} | {r['ipopt_s_per_step']:.2e} | {r['sqp_rti_s_per_copy_step_1024']:.2e} | "
+            f"1/{1 / r['time_ratio']:,.0f} |"
+        )
+    notes = f"""
+Linear MPC, horizon {meta["config"]["horizon"]}, float32, random states around the reference (the parity tests'
+sets; u0 error over the states qpOASES solves). admm: `scg_algorithms.mpc.structured` with linear MPC's defaults
+(tolerance 1e-5, at most 1,000 iterations and 3 rounds of active-set polish, each batch runs until its slowest copy
+converges; "50 it.": tolerance 0, exactly 50 iterations, no polish: the throughput setting, with its own largest u0
+error); qpax: 40 interior-point
+iterations; qpOASES and OSQP: `linear_mpc_casadi`, one problem at a time on the host. env: one vmapped `env.step`.
+Load average at the start and end: {meta["load_average"]} / {meta["load_average_end"]}.
+""" + "\n".join(rti_lines)
+    write_markdown_table(path, "Structured MPC solvers", meta, columns, rows, notes)
+
+
 # --------------------------------------------------------------------------------------------- report
 def _table(title: str) -> Table:
     """A report table: simple header rule, title left-aligned."""
@@ -489,6 +734,26 @@ def main(argv=None) -> int:
                 highlight=False,
             )
         rows.append(row)
+
+    if "solvers" in args.parts:
+        meta["config"].update(batches=args.batches, parity_states=args.parity_states, rti_episodes=args.rti_episodes)
+        meta["load_average"] = load_average()
+        qp_rows, rti_rows = [], []
+        for name in args.solver_systems:
+            for with_state in (False, True):
+                r = measure_qp_solvers(name, with_state, args)
+                qp_rows.append(r)
+                console.print(f"{name} ({r['constraints']}): {r}", highlight=False)
+            if name in RTI_TASKS:
+                r = measure_rti(name, args)
+                rti_rows.append(r)
+                console.print(f"{name} SQP-RTI: {r}", highlight=False)
+        meta["load_average_end"] = load_average()
+        write_json(args.json.with_name("mpc_solvers.json"), {**meta, "qp": qp_rows, "rti": rti_rows})
+        write_solvers_markdown(args.solvers_markdown, qp_rows, rti_rows, meta)
+        console.print(f"solvers page written to {args.solvers_markdown}", highlight=False)
+        if set(args.parts) == {"solvers"}:
+            return 0
 
     meta["load_average_end"] = load_average()
     meta["total_runtime_s"] = time.perf_counter() - started

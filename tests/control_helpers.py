@@ -18,3 +18,24 @@ def cartpole_with_full_q():
     Q[1, 3] = Q[3, 1] = 0.5
     params = env.default_params.replace(Q=jnp.asarray(Q, env.default_params.Q.dtype))
     return env, params, Q
+
+
+def env_and_random_states(make_kwargs: dict, spread, count: int, offset=0.0, seed: int = 0):
+    """An env from ``make_kwargs`` (with its ``"system"``) and ``count`` random (step, state) pairs around it.
+
+    Returns:
+        ``(env, params, reference, steps, states)``: the env, its default params, its reference (float64 numpy),
+        the control steps (random for tracking, 0 for stabilization) and the states ``x_ref[step] + offset +
+        U(-spread, spread)`` (count, nx).
+    """
+    from scg_algorithms.base import Reference
+
+    make_kwargs = dict(make_kwargs)
+    env = scg_jax.make(make_kwargs.pop("system"), **make_kwargs)
+    params = env.default_params
+    reference = Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
+    rng = np.random.default_rng(seed)
+    n = reference.x_ref.shape[0]
+    steps = rng.integers(0, n - 1, count) if env.task == "tracking" else np.zeros(count, int)
+    states = reference.x_ref[steps] + offset + rng.uniform(-1.0, 1.0, (count, env.nx)) * np.asarray(spread)
+    return env, params, reference, steps, states

@@ -3,9 +3,11 @@
 Two controllers share one ``Options`` dataclass (a config file's ``controllers.linear_mpc`` and
 ``controllers.linear_mpc_casadi`` sections; the qpax fields are ignored by the CasADi one):
 
-- ``make_linear_mpc`` (registered ``"linear_mpc"``): a ``JaxController`` whose ``act`` forms the right-hand side
-  of the condensed QP of ``scg_algorithms.mpc.qp`` and solves it with ``qpax`` (a primal-dual interior-point method in
-  JAX); ``jax.vmap`` runs thousands of copies at once.
+- ``make_linear_mpc`` (registered ``"linear_mpc"``): a ``JaxController`` whose ``act`` solves the QP with the
+  structured horizon-QP solver (``solver="admm"``, default: ``scg_algorithms.mpc.structured``, prepared once on the
+  host when the model is the same at every stage, warm-started from the previous step's shifted plan) or forms
+  the right-hand side of the condensed QP of ``scg_algorithms.mpc.qp`` and solves it with ``qpax``
+  (``solver="qpax"``, a primal-dual interior-point method in JAX); ``jax.vmap`` runs thousands of copies at once.
 - ``make_linear_mpc_casadi`` (registered ``"linear_mpc_casadi"``): the same problem for one copy on the host in the
   form of ``casadi.Opti("conic")`` (inputs as the only variables, states as expressions of them; no
   pre-stabilisation) with qpOASES (default) or OSQP; the constraints are the symbolic model's own ``g`` functions.
@@ -37,8 +39,9 @@ Problem at control step ``k`` (observed state ``x_0``, reference ``r_j = x_ref[m
   (``slack_per_stage=True``; see ``scg_algorithms.mpc.qp`` for how the two behave), at the cost
   ``slack_l1 * e + 1/2 slack_l2 * e^2`` per slack, so the QP stays feasible when the plant is already outside
   or cannot avoid leaving the constraint set; input rows stay hard.
-- **Failure handling** (JAX): every solve is checked (status in ``ctrl_state``; ``scg_algorithms.mpc.qp``). A finite
-  iterate feasible within ``feasibility_tol`` is used even if qpax did not report convergence (float32 limits the
+- **Failure handling** (JAX): every solve is checked (status in ``ctrl_state``; ``scg_algorithms.mpc.structured``
+  or ``scg_algorithms.mpc.qp``). A finite iterate feasible within ``feasibility_tol`` is used even if the solver
+  did not report convergence (float32 limits the
   residual it can reach, see ``scg_algorithms.mpc.qp``); a non-finite or infeasible one (an infeasible QP: hard
   state constraints that cannot be met, or input rows that contradict the actuator limits) is replaced by the
   LQR input ``u_eq - K (x_0 - x_ref[k])``. In every case the input is finally clipped to the box of the hard input
@@ -46,8 +49,8 @@ Problem at control step ``k`` (observed state ``x_0``, reference ``r_j = x_ref[m
   the limits; general (non-box) input rows are only held by the QP. The CasADi controller does the same when
   its solver reports failure.
 
-Controller memory (JAX): ``LinearMPCState(status, iterations)`` of the last solve, for diagnostics only
-(``scg_algorithms.mpc.qp.STATUS_*``).
+Controller memory (JAX): ``LinearMPCState(status, iterations, warm, plan_step)``: the last solve's status and
+iterations, and with admm its warm start and the step it was made at.
 """
 
 from __future__ import annotations
@@ -55,6 +58,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, ClassVar, NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -62,11 +66,13 @@ from scg_algorithms import controller_setup as setup
 from scg_algorithms.base import JaxController, option, parse_options, positive, state_from_obs
 from scg_algorithms.lqr import discrete_lqr_gain
 from scg_algorithms.mpc import qp as qp_lib
+from scg_algorithms.mpc import structured
 
 LINEARIZE_ABOUT = setup.LINEARIZE_ABOUT
 TERMINAL_WEIGHTS = setup.TERMINAL_WEIGHTS
 DISCRETIZATIONS = setup.DISCRETIZATIONS
 CASADI_SOLVERS = ("qpoases", "osqp")
+SOLVERS = ("admm", "qpax")
 PATH = "controllers.linear_mpc"
 CASADI_PATH = "controllers.linear_mpc_casadi"
 
@@ -100,7 +106,24 @@ class Options(setup.MPCOptions):
     )
     slack_l1: float = option(1e3, "L1 weight of a slack in the objective J/2, cost per unit of violation")
     slack_l2: float = option(1e2, "L2 weight of a slack (1/2 slack_l2 e^2)")
-    prestabilize: bool = option(True, "condense with the LQR-stabilised prediction (u = u_eq - K dx + v)")
+    prestabilize: bool = option(
+        True, "condense with the LQR-stabilised prediction (u = u_eq - K dx + v); off, float32 ADMM loses accuracy"
+    )
+    solver: str = option(
+        "admm",
+        "JAX QP solver: admm (scg_algorithms.mpc.structured: condensed OSQP-style ADMM, factorised once, warm "
+        "started) or qpax (dense interior point)",
+        choices=SOLVERS,
+    )
+    admm_max_iter: int = option(1000, "admm: iterations at most per step (each copy stops when converged)")
+    admm_tol: float = option(
+        1e-5, "admm: absolute and relative residual tolerance on the scaled QP (0: always run admm_max_iter)"
+    )
+    admm_check_every: int = option(5, "admm: iterations between residual checks and step-size updates")
+    admm_polish_rounds: int = option(
+        3, "admm: active-set polish rounds after the ADMM (0: none; cheaper per step, less accurate at few iterations)"
+    )
+    warm_start: bool = option(True, "admm: start from the previous step's plan and multipliers, shifted")
     max_iter: int = option(40, "qpax interior-point iterations at most (float32 solves rarely stop earlier)")
     solver_tol: float = option(
         1e-8, "qpax KKT residual tolerance (on the scaled QP; the default runs max_iter, see scg_algorithms.mpc.qp)"
@@ -111,12 +134,12 @@ class Options(setup.MPCOptions):
     casadi_solver: str = option("qpoases", "conic solver of the CasADi variant", choices=CASADI_SOLVERS)
 
     def _check(self, path: str) -> None:
-        for name in ("horizon", "max_iter"):
+        for name in ("horizon", "max_iter", "admm_max_iter", "admm_check_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{path}.{name}: must be a positive integer, got {getattr(self, name)!r}")
         for name in ("solver_tol", "feasibility_tol"):
             positive(f"{path}.{name}", getattr(self, name))
-        for name in ("slack_l1", "slack_l2"):
+        for name in ("slack_l1", "slack_l2", "admm_tol", "admm_polish_rounds"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
         if self.soft_constraints and self.slack_l1 == 0 and self.slack_l2 == 0:
@@ -124,11 +147,15 @@ class Options(setup.MPCOptions):
 
 
 class LinearMPCState(NamedTuple):
-    """Diagnostics of the last solve of one copy: ``status`` (``scg_algorithms.mpc.qp.STATUS_*``, int32) and the
-    interior-point ``iterations`` (int32)."""
+    """The memory of one copy: the last solve's ``status`` (int32: ``scg_algorithms.mpc.structured``'s codes with
+    ``solver="admm"``, ``scg_algorithms.mpc.qp.STATUS_*`` with qpax; ``info["status_names"]`` names them) and
+    ``iterations`` (int32); with admm, the plan's ``warm`` start (``structured.Warm``; ``rho = 0``: none) and
+    ``plan_step``, the control step it was made at."""
 
     status: Any
     iterations: Any
+    warm: Any
+    plan_step: Any
 
 
 # --------------------------------------------------------------------------------------------- host set-up
@@ -285,6 +312,170 @@ def build_condensed_qp(problem: Problem) -> qp_lib.CondensedQP:
     )
 
 
+# --------------------------------------------------------------------------------------------- structured QP
+@dataclasses.dataclass(frozen=True)
+class StructuredMPC:
+    """The linear MPC as a ``structured.HorizonQP`` family (host data; see ``structured_mpc``).
+
+    Attributes:
+        layout: the ``structured.Layout``. settings: the ``structured.Settings`` of the options.
+        stage_Q: (H, nx, nx) weights of ``x_1..x_H`` (the last: the terminal weight of the QP at step 0).
+        bounds: ``(u_low, u_high, x_low, x_high, row_low, row_high)``, each with a leading stage axis (H, ...).
+        C, D: (m, nx), (m, nu) the general rows (unit norm), the same at every stage.
+        prepared: ``structured.Prepared`` when the model's matrices are the same at every point, else ``None``
+            (the matrices then change with the step, and every copy condenses its own QP).
+    """
+
+    layout: structured.Layout
+    settings: structured.Settings
+    stage_Q: np.ndarray
+    bounds: tuple
+    C: np.ndarray
+    D: np.ndarray
+    prepared: Any
+
+
+def _structured_rows(problem: Problem):
+    """Split the constraint rows into the input box (the clip box), state boxes and general rows.
+
+    Returns ``(x_rows, x_low, x_high, soft_x, C, D, row_high, soft_rows)``. A state-only row on one entry becomes a
+    bound of that entry (the tightest with hard rows; with softened ones the first upper and the first lower one,
+    and a further one stays a general row with its own slack, as in the CasADi controller); every other
+    row that involves the state, and every input row on several inputs, is a general row ``C x + D u <= b``
+    scaled to unit norm, so that its slack is in the row's units, as in ``scg_algorithms.mpc.qp``.
+    """
+    rows = problem.rows
+    upper, lower, general = {}, {}, []
+    for r, (ax, au, b) in enumerate(zip(rows.Ax, rows.Au, rows.b, strict=True)):
+        state = np.flatnonzero(ax)
+        if state.size == 0 and np.count_nonzero(au) == 1:
+            continue  # a single-input row: part of the clip box (problem.u_low, problem.u_high)
+        if state.size == 1 and not np.any(au):
+            i, a = int(state[0]), ax[state[0]]
+            side, tighter = (upper, min) if a > 0 else (lower, max)
+            if i not in side:
+                side[i] = (b / a, bool(rows.soft[r]))
+                continue
+            if not (side[i][1] or problem.options.soft_constraints):  # hard rows: only the tightest can bind
+                side[i] = (tighter(side[i][0], b / a), False)
+                continue
+        general.append(r)
+    x_rows = tuple(sorted(set(upper) | set(lower)))
+    x_low = np.array([lower[i][0] if i in lower else -np.inf for i in x_rows])
+    x_high = np.array([upper[i][0] if i in upper else np.inf for i in x_rows])
+    soft_x = tuple(bool(upper.get(i, (0.0, False))[1] or lower.get(i, (0.0, False))[1]) for i in x_rows)
+    Ax, Au, b = rows.Ax[general], rows.Au[general], rows.b[general]
+    norms = np.linalg.norm(np.concatenate([Ax, Au], axis=1), axis=1)
+    soft_rows = tuple(bool(rows.soft[r]) for r in general)
+    return x_rows, x_low, x_high, soft_x, Ax / norms[:, None], Au / norms[:, None], b / norms, soft_rows
+
+
+def structured_mpc(problem: Problem) -> StructuredMPC:
+    """The linear MPC of ``problem`` for ``scg_algorithms.mpc.structured`` (host, float64; prepared once when the
+    model's matrices do not change along the reference)."""
+    opts = problem.options
+    affine = problem.affine
+    H, nx, nu = opts.horizon, problem.Q.shape[0], problem.R.shape[0]
+    x_rows, x_low, x_high, soft_x, C, D, row_high, soft_rows = _structured_rows(problem)
+    soft = opts.soft_constraints
+    layout = structured.Layout(
+        horizon=H,
+        nx=nx,
+        nu=nu,
+        x_rows=x_rows,
+        num_rows=C.shape[0],
+        soft_x=tuple(f and soft for f in soft_x),
+        soft_rows=tuple(f and soft for f in soft_rows),
+        slack="stage" if opts.slack_per_stage else "shared",
+        l1=opts.slack_l1,
+        l2=opts.slack_l2,
+    )
+    settings = structured.Settings(
+        max_iterations=opts.admm_max_iter,
+        check_every=opts.admm_check_every,
+        eps_abs=opts.admm_tol,
+        eps_rel=opts.admm_tol,
+        polish_rounds=opts.admm_polish_rounds,
+    )
+    stage_Q = np.stack([problem.Q] * (H - 1) + [affine.P[0]])
+    m = C.shape[0]
+    bounds = tuple(
+        np.tile(np.asarray(a, dtype=np.float64), (H, 1))
+        for a in (problem.u_low, problem.u_high, x_low, x_high, np.full(m, -np.inf), row_high)
+    )
+    prepared = None
+    if affine.time_invariant:
+        template = structured.HorizonQP(
+            A=np.repeat(affine.Ad[:1], H, axis=0),
+            B=np.repeat(affine.Bd[:1], H, axis=0),
+            c=np.zeros((H, nx)),
+            K=np.repeat(affine.K[:1], H, axis=0),
+            Q=stage_Q,
+            q=np.zeros((H, nx)),
+            R=np.repeat(problem.R[None], H, axis=0),
+            r=np.zeros((H, nu)),
+            u_low=bounds[0],
+            u_high=bounds[1],
+            x_low=bounds[2],
+            x_high=bounds[3],
+            C=np.repeat(C[None], H, axis=0),
+            D=np.repeat(D[None], H, axis=0),
+            row_low=bounds[4],
+            row_high=bounds[5],
+        )
+        prepared = structured.prepare(layout, template, settings)
+    return StructuredMPC(layout, settings, stage_Q, bounds, C, D, prepared)
+
+
+def _no_warm(layout: structured.Layout, dtype) -> structured.Warm:
+    """The ``Warm`` that means "none" (``rho = 0``): the next solve starts cold."""
+    zeros = jnp.zeros(layout.num_dense, dtype)
+    return structured.Warm(zeros, zeros, jnp.zeros((), dtype))
+
+
+def _structured_solve(problem: Problem, smpc: StructuredMPC, dtype):
+    """``solve(ctrl_state, x, step, x_ref) -> (u_0, ctrl_state, failed)`` with the admm solver (one copy)."""
+    opts, affine, layout = problem.options, problem.affine, smpc.layout
+    H, n_points = opts.horizon, affine.num_points
+    cast = lambda a: jnp.asarray(a, dtype)  # noqa: E731
+    c_table, Ad, Bd, K, P = (cast(a) for a in (affine.c, affine.Ad, affine.Bd, affine.K, affine.P))
+    stage_Q, R = cast(smpc.stage_Q), cast(problem.R)
+    r = jnp.tile(-(R @ cast(affine.u_bar)), (H, 1))
+    bounds = tuple(cast(b) for b in smpc.bounds)
+    C, D = (jnp.broadcast_to(cast(a), (H, *a.shape)) for a in (smpc.C, smpc.D))
+    cold = _no_warm(layout, dtype)
+
+    def where(condition, a, b):
+        return jax.tree.map(lambda u, v: jnp.where(condition, u, v), a, b)
+
+    def solve(ctrl_state, x, step, x_ref):
+        stages = jnp.clip(step + jnp.arange(H), 0, n_points - 1)
+        targets = jnp.clip(step + 1 + jnp.arange(H), 0, x_ref.shape[0] - 1)
+        Q = stage_Q if smpc.prepared is not None else stage_Q.at[-1].set(P[jnp.minimum(step + H, n_points - 1)])
+        q = -jnp.einsum("kxy,ky->kx", Q, jnp.asarray(x_ref, dtype)[targets])
+        moved = step - ctrl_state.plan_step
+        usable = (ctrl_state.plan_step >= 0) & (moved >= 1) & (moved <= H)
+        warm = where(usable, structured.shift(layout, ctrl_state.warm, jnp.maximum(moved, 0)), cold)
+        warm = warm if opts.warm_start else cold
+        if smpc.prepared is not None:
+            sol = structured.solve_prepared(
+                layout, smpc.prepared, x, c_table[stages], q, r, bounds, warm, smpc.settings
+            )
+        else:
+            R_stages = jnp.broadcast_to(R, (H, *R.shape))
+            qp = structured.HorizonQP(
+                Ad[stages], Bd[stages], c_table[stages], K[stages], Q, q, R_stages, r, *bounds[:4], C, D, *bounds[4:]
+            )
+            sol = structured.solve(layout, qp, x, warm, smpc.settings)
+        u = sol.u[0]
+        unusable = (sol.status == structured.INFEASIBLE) | (sol.status == structured.NUMERICAL)
+        failed = unusable | (sol.violation > opts.feasibility_tol) | ~jnp.all(jnp.isfinite(u))
+        state = LinearMPCState(sol.status, sol.iterations, where(failed, cold, sol.warm), jnp.asarray(step, jnp.int32))
+        return u, state, failed
+
+    return solve
+
+
 # --------------------------------------------------------------------------------------------- JAX controller
 def make_linear_mpc(env, prior_params, options=None) -> JaxController:
     """Batched linear MPC in JAX (see the module docstring).
@@ -295,9 +486,10 @@ def make_linear_mpc(env, prior_params, options=None) -> JaxController:
             mapping (``controllers.linear_mpc``).
 
     Returns:
-        A ``JaxController`` named ``"linear_mpc"``. ``act`` returns the input (nu,), N, and
-        ``LinearMPCState``. ``info`` holds ``qp`` (the ``CondensedQP``), ``horizon``, ``linearize_about``,
-        ``K_lqr``, ``u_low``/``u_high`` (the clip box) and ``skipped_constraints``.
+        A ``JaxController`` named ``"linear_mpc"``. ``act`` returns the input (nu,), N, and ``LinearMPCState``.
+        ``info`` holds ``solver``, ``status_names``, ``qp`` (the ``CondensedQP`` of qpax), ``structured`` (the
+        ``StructuredMPC`` of admm, ``None`` with qpax), ``horizon``, ``linearize_about``, ``K_lqr``,
+        ``u_low``/``u_high`` (the clip box) and ``skipped_constraints``.
 
     Raises:
         ValueError: naming ``controllers.linear_mpc.<field>`` for a bad option.
@@ -306,30 +498,46 @@ def make_linear_mpc(env, prior_params, options=None) -> JaxController:
     opts = problem.options
     qp = build_condensed_qp(problem)
     dtype = jnp.zeros(()).dtype
-    arrays = qp_lib.qp_arrays(qp, dtype)
     K_lqr = jnp.asarray(problem.K_lqr, dtype)
     u_bar = jnp.asarray(problem.affine.u_bar, dtype)
     u_low = jnp.asarray(problem.u_low, dtype)
     u_high = jnp.asarray(problem.u_high, dtype)
     last_point = problem.K_lqr.shape[0] - 1
-    settings = {"max_iter": opts.max_iter, "solver_tol": opts.solver_tol, "feasibility_tol": opts.feasibility_tol}
+    if opts.solver == "admm":
+        smpc = structured_mpc(problem)
+        solve_structured = _structured_solve(problem, smpc, dtype)
+        empty = _no_warm(smpc.layout, dtype)
+        status_names = structured.STATUS_NAMES
+    else:
+        smpc = None
+        arrays = qp_lib.qp_arrays(qp, dtype)
+        settings = {"max_iter": opts.max_iter, "solver_tol": opts.solver_tol, "feasibility_tol": opts.feasibility_tol}
+        empty = structured.Warm(jnp.zeros(0, dtype), jnp.zeros(0, dtype), jnp.zeros((), dtype))
+        status_names = ("solved", "inaccurate", "failed")
 
     def reset(key, reference):
-        return LinearMPCState(jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32))
+        return LinearMPCState(jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), empty, jnp.asarray(-1, jnp.int32))
 
     def act(ctrl_state, obs, step, reference):
         x = jnp.asarray(state_from_obs(env, obs), dtype)
-        hess, q, G, h, theta, index = qp_lib.qp_vectors(qp, arrays, step, x, reference.x_ref)
-        solution = qp_lib.solve_qp(hess, q, G, h, **settings)
-        u_mpc = qp_lib.first_input(arrays, solution.z, theta, index)
+        if smpc is not None:
+            u_mpc, new_state, failed = solve_structured(ctrl_state, x, step, reference.x_ref)
+        else:
+            hess, q, G, h, theta, index = qp_lib.qp_vectors(qp, arrays, step, x, reference.x_ref)
+            solution = qp_lib.solve_qp(hess, q, G, h, **settings)
+            u_mpc = qp_lib.first_input(arrays, solution.z, theta, index)
+            failed = (solution.status == qp_lib.STATUS_FAILED) | ~jnp.all(jnp.isfinite(u_mpc))
+            new_state = LinearMPCState(solution.status, solution.iterations, empty, jnp.asarray(step, jnp.int32))
         k = jnp.clip(step, 0, reference.x_ref.shape[0] - 1)
         u_lqr = u_bar - K_lqr[jnp.minimum(k, last_point)] @ (x - reference.x_ref[k])
-        failed = (solution.status == qp_lib.STATUS_FAILED) | ~jnp.all(jnp.isfinite(u_mpc))
         u = jnp.clip(jnp.where(failed, u_lqr, u_mpc), u_low, u_high)
-        return u, LinearMPCState(solution.status, solution.iterations)
+        return u, new_state
 
     info = {
+        "solver": opts.solver,
+        "status_names": status_names,
         "qp": qp,
+        "structured": smpc,
         "horizon": opts.horizon,
         "linearize_about": "goal" if problem.affine.num_points == 1 else "reference",
         "K_lqr": problem.K_lqr,

@@ -61,6 +61,7 @@ from scg_algorithms.base import option, parse_options, positive, state_from_obs
 
 PATH = "controllers.nonlinear_mpc"
 SOURCES = ("solution", "last_iterate", "shifted_plan", "equilibrium")
+SOLVERS = ("ipopt", "sqp", "sqp_rti")
 
 
 def _vector(dm) -> np.ndarray:
@@ -101,8 +102,19 @@ class Options(setup.MPCOptions):
     max_iter: int = option(100, "IPOPT iteration limit per step")
     tol: float = option(1e-6, "IPOPT convergence tolerance")
     fallback_tol: float = option(
-        1e-4, "largest constraint violation of IPOPT's last iterate accepted after a failed solve"
+        1e-4, "largest constraint violation of IPOPT's last iterate (sqp: of a QP's plan) accepted after a failed solve"
     )
+    solver: str = option(
+        "ipopt",
+        "ipopt (CasADi, host, one copy: the reference), sqp (JAX, iterated to convergence) or sqp_rti (JAX, one "
+        "QP per step about the shifted plan); see scg_algorithms.mpc.sqp",
+        choices=SOLVERS,
+    )
+    sqp_max_iter: int = option(20, "sqp: SQP iterations at most per step (sqp_rti: at its first step)")
+    sqp_tol: float = option(1e-6, "sqp: stop when no input of the plan moves by more than this, N")
+    qp_max_iter: int = option(200, "sqp, sqp_rti: ADMM iterations at most per QP")
+    qp_tol: float = option(1e-5, "sqp, sqp_rti: the QP's residual tolerance (scg_algorithms.mpc.structured)")
+    merit_weight: float = option(1e4, "sqp, sqp_rti: weight of the l1 constraint violation in the line search's merit")
 
     def _check(self, path: str) -> None:
         positive(f"{path}.horizon", self.horizon)
@@ -111,6 +123,10 @@ class Options(setup.MPCOptions):
         positive(f"{path}.warm_mu_init", self.warm_mu_init)
         positive(f"{path}.soft_penalty", self.soft_penalty)
         positive(f"{path}.fallback_tol", self.fallback_tol)
+        for name in ("sqp_max_iter", "qp_max_iter", "sqp_tol", "merit_weight"):
+            positive(f"{path}.{name}", getattr(self, name))
+        if self.qp_tol < 0:
+            raise ValueError(f"{path}.qp_tol: must be >= 0, got {self.qp_tol!r}")
         if self.constraint_margin < 0:
             raise ValueError(f"{path}.constraint_margin: must be >= 0, got {self.constraint_margin!r}")
 
@@ -441,11 +457,16 @@ def make_nonlinear_mpc(env, prior_params, options=None) -> NonlinearMPC:
             mapping (a config file's ``controllers.nonlinear_mpc``).
 
     Returns:
-        A ``NonlinearMPC`` host controller. Its state (``NMPCState``) records the IPOPT wall time, iterations and
-        status of every step, and the fallbacks taken.
+        With ``solver="ipopt"`` (default), a ``NonlinearMPC`` host controller; its state (``NMPCState``) records the
+        IPOPT wall time, iterations and status of every step, and the fallbacks taken. With ``"sqp"`` or
+        ``"sqp_rti"``, a ``JaxController`` (``scg_algorithms.mpc.sqp.make_sqp_mpc``) for the jitted, batched loop.
 
     Raises:
         ValueError: naming ``controllers.nonlinear_mpc.<field>`` for a bad option.
     """
     opts = parse_options(Options, options, PATH)
+    if opts.solver != "ipopt":
+        from scg_algorithms.mpc.sqp import make_sqp_mpc
+
+        return make_sqp_mpc(env, prior_params, opts)
     return NonlinearMPC(env, prior_params, opts)

@@ -1,0 +1,1009 @@
+"""The structured horizon-QP solver every MPC-based method uses in JAX: condensing and an OSQP-style ADMM.
+
+Problem (one copy; ``N`` stages, ``nx`` states, ``nu`` inputs; the env's convention: stage ``k`` constrains the
+state it reaches and the input it commands)::
+
+    min   sum_{k=0}^{N-1}  1/2 x_{k+1}^T Q_k x_{k+1} + q_k^T x_{k+1} + 1/2 u_k^T R_k u_k + r_k^T u_k  [+ penalties]
+    s.t.  x_0 = x_init,      x_{k+1} = A_k x_k + B_k u_k + c_k
+          u_low_k   <= u_k                      <= u_high_k       (always hard)
+          x_low_k   <= x_{k+1}[i]               <= x_high_k       (the state entries i of ``Layout.x_rows``)
+          row_low_k <= C_k x_{k+1} + D_k u_k    <= row_high_k     (``Layout.num_rows`` general rows)
+
+``Q_{N-1}`` is the terminal weight. Every matrix may change along the horizon (the linearisations of SQP-RTI) and
+between copies; bounds may be infinite. A soft row (``Layout.soft_x``, ``Layout.soft_rows``) may be violated by
+``e >= 0`` (in the row's units: m, rad, N) at the price ``l1 e + 1/2 l2 e^2`` per side, either per stage
+(``slack="stage"``: every stage's violation is priced) or with one slack per row and side for the whole horizon
+(``slack="shared"``: the worst violation over the horizon is priced, as safe-control-gym's MPC does). Both are
+priced inside the ADMM's prox (below), so soft rows add no variables.
+
+**Condensing.** The states are eliminated with a pre-stabilising change of variables ``u_k = -K_k x_k + v_k``
+(``HorizonQP.K``, e.g. the LQR gain; zeros give the plain inputs): ``x_{k+1} = Ex_k v + ex_k`` and
+``u_k = Eu_k v + eu_k``. The solution does not depend on ``K``; its conditioning does. On the upright cart-pole at
+15 Hz (horizon 20) the plain inputs' Hessian has a condition number of 2e5, and float32 ADMM on it stalls 4e-2 N
+from the optimum however many iterations it runs (float64: 1e-10 N in 50), because the plain linear term is large
+and mostly cancels; with ``K`` the LQR gain, float32 reaches 1e-6 N in 25 iterations. The QP is then
+``min 1/2 v^T H v + g^T v  s.t.  low <= G v <= high`` where every row (the inputs, the state boxes, the general
+rows) is a dense row of ``G``, stage by stage, in units between its interval's half-width and its norm
+(``_row_scales``), and the objective is scaled so that its largest input diagonal is 1.
+
+**ADMM** (OSQP, Stellato et al. 2020, with relaxation ``alpha``, one step size ``t`` per copy and no proximal term,
+since ``G`` has full column rank: every input has its row)::
+
+    v~ = (H + t G^T G)^-1 (G^T (t s - y) - g),     s~ = G v~
+    s^ = alpha s~ + (1 - alpha) s
+    s  = prox(s^ + y / t)    (the projection onto [low, high]; for soft rows, the prox of their penalty)
+    y  = y + t (s^ - s)
+
+Without a proximal term OSQP's relaxed primal iterate enters no update, so it is not carried; the residuals use
+the latest ``v~``. Two ways to apply the inverse:
+
+- ``prepare`` + ``solve_prepared`` (matrices shared by every copy and call, e.g. linear MPC about the goal):
+  everything that does not depend on the copy is computed once on the host in float64, including the generalised
+  eigenvectors ``T`` of ``(H, G^T G)`` (``T^T H T = diag(lam)``, ``T^T G^T G T = I``), so that
+  ``(H + t G^T G)^-1 = T diag(1 / (lam + t)) T^T`` for *every* ``t``. In ``xi = T^-1 v`` an iteration is
+  ``xi~ = ((G T)^T (t s - y) - T^T g) / (lam + t)``, ``s~ = (G T) xi~``: two products with one matrix shared by
+  the batch (a GEMM under ``vmap``), and ``t`` adapts per copy at no cost. With ``adaptive_rho=False`` the two
+  products fold into one ``(p, p)`` matrix for the initial ``t``.
+- ``solve`` (matrices per copy, e.g. the QPs of SQP and SQP-RTI): condenses and factorises per copy (Cholesky of
+  ``H + t G^T G``, kept as ``(H + t G^T G)^-1 [G^T, g]``), refactorised when ``t`` has moved by more than
+  ``Settings.refactor_ratio``.
+
+**Loops and tolerances.** At most ``Settings.max_iterations`` iterations (rounded up to a multiple of
+``check_every``), in segments of ``check_every`` (a ``lax.fori_loop`` inside a ``lax.while_loop``). After each
+segment, on the scaled problem: OSQP's stopping test (``|G v~ - s|_inf <= eps_abs + eps_rel max(|G v~|_inf,
+|s|_inf)`` and ``|H v~ + g + G^T y|_inf <= eps_abs + eps_rel max(|H v~|_inf, |G^T y|_inf, |g|_inf)``; on the shared
+path the dual residual is measured in the coordinates ``xi``), OSQP's certificate of primal infeasibility on the
+hard rows (``|G^T dy|_inf <= eps_infeasible |dy|_inf`` and ``high^T dy+ + low^T dy- <= -eps_infeasible
+|dy|_inf``), and OSQP's step-size rule ``t <- t sqrt(relative primal residual / relative dual residual)``. Under
+``vmap`` the while loop runs until its slowest copy stops, and a copy that stopped keeps its result;
+``eps_abs = eps_rel = 0`` runs every solve to the cap (no copy waits for another, the fastest batched setting).
+
+**Solution.** The inputs are taken from the projected ``s`` (inside their box whatever the iteration count), the
+states from ``v~`` through the model. ``status``: ``CONVERGED`` (0); ``MAX_ITERATIONS`` (1: the last iterate, with
+its residuals and ``violation``, the largest violation of a hard row by the plan); ``INFEASIBLE`` (2: the hard rows
+admit no solution; the iterate is returned); ``NUMERICAL`` (3: a non-finite iterate; the plan is the pre-stabilised
+trajectory, inputs clipped to their box). Nothing returned is NaN; the caller decides what to apply on 1, 2 or 3.
+
+Float32 by default (the dtype of ``x_init``), float64 when x64 is on; ``prepare`` computes in float64 and casts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+CONVERGED = 0
+MAX_ITERATIONS = 1
+INFEASIBLE = 2
+NUMERICAL = 3
+STATUS_NAMES = ("converged", "max_iterations", "infeasible", "numerical")
+SLACK_MODES = ("stage", "shared")
+DEFAULT_RHO = 1e-3  # the initial step size of ``solve`` when neither the settings nor a warm start give one
+
+
+# --------------------------------------------------------------------------------------------- problem
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """The static structure of a horizon QP (hashable; decided in Python when a controller is made).
+
+    Attributes:
+        horizon: N >= 1 stages. nx, nu: state and input sizes.
+        x_rows: the state entries that carry a box row (the columns of ``x_low``/``x_high``, in this order).
+        num_rows: general rows per stage (``C``, ``D``).
+        soft_x: per entry of ``x_rows``, whether its row is soft. soft_rows: per general row, whether it is soft.
+        slack: ``"stage"`` or ``"shared"`` (see the module docstring).
+        l1, l2: the price of a violation ``e``: ``l1 e + 1/2 l2 e^2`` (objective units per row unit).
+    """
+
+    horizon: int
+    nx: int
+    nu: int
+    x_rows: tuple = ()
+    num_rows: int = 0
+    soft_x: tuple | None = None
+    soft_rows: tuple | None = None
+    slack: str = "stage"
+    l1: float = 0.0
+    l2: float = 0.0
+
+    def __post_init__(self):
+        if self.horizon < 1 or self.nx < 1 or self.nu < 1:
+            raise ValueError(f"Layout: horizon, nx and nu must be >= 1, got {self.horizon}, {self.nx}, {self.nu}")
+        rows = tuple(int(i) for i in self.x_rows)
+        if any(not 0 <= i < self.nx for i in rows) or len(set(rows)) != len(rows):
+            raise ValueError(f"Layout.x_rows: expected distinct state indices in [0, {self.nx}), got {self.x_rows}")
+        if self.num_rows < 0:
+            raise ValueError(f"Layout.num_rows: must be >= 0, got {self.num_rows}")
+        if self.slack not in SLACK_MODES:
+            raise ValueError(f"Layout.slack: unknown value {self.slack!r}; allowed values are stage, shared")
+        soft_x = (False,) * len(rows) if self.soft_x is None else tuple(bool(s) for s in self.soft_x)
+        soft_rows = (False,) * self.num_rows if self.soft_rows is None else tuple(bool(s) for s in self.soft_rows)
+        if len(soft_x) != len(rows) or len(soft_rows) != self.num_rows:
+            raise ValueError("Layout: soft_x needs one flag per x_rows entry and soft_rows one per general row")
+        if any(soft_x + soft_rows) and (self.l1 < 0 or self.l2 < 0 or self.l1 + self.l2 == 0):
+            raise ValueError(f"Layout: soft rows need l1, l2 >= 0, not both 0; got {self.l1}, {self.l2}")
+        object.__setattr__(self, "x_rows", rows)
+        object.__setattr__(self, "soft_x", soft_x)
+        object.__setattr__(self, "soft_rows", soft_rows)
+
+    @property
+    def stage_rows(self) -> int:
+        """Rows of one stage: the inputs, the state boxes, the general rows."""
+        return self.nu + len(self.x_rows) + self.num_rows
+
+    @property
+    def soft(self) -> tuple:
+        """Per row of a stage, whether it is soft (input rows never are)."""
+        return (False,) * self.nu + self.soft_x + self.soft_rows
+
+    @property
+    def num_decisions(self) -> int:
+        """Entries of ``v``: one per stage and input."""
+        return self.horizon * self.nu
+
+    @property
+    def num_dense(self) -> int:
+        """Rows of ``G`` (stage-major)."""
+        return self.horizon * self.stage_rows
+
+
+class HorizonQP(NamedTuple):
+    """The data of one horizon QP (a pytree: ``vmap`` over any leaf). Infinite bounds are allowed.
+
+    Attributes:
+        A: (N, nx, nx). B: (N, nx, nu). c: (N, nx): ``x_{k+1} = A_k x_k + B_k u_k + c_k``.
+        K: (N, nu, nx) pre-stabilising gains (``u_k = -K_k x_k + v_k``; only the conditioning depends on them).
+        Q: (N, nx, nx) weight of ``x_{k+1}`` (``Q[N-1]`` the terminal weight). q: (N, nx).
+        R: (N, nu, nu) positive definite. r: (N, nu).
+        u_low, u_high: (N, nu). x_low, x_high: (N, len(x_rows)) bounds of ``x_{k+1}[x_rows]``.
+        C: (N, m, nx). D: (N, m, nu). row_low, row_high: (N, m).
+    """
+
+    A: Any
+    B: Any
+    c: Any
+    K: Any
+    Q: Any
+    q: Any
+    R: Any
+    r: Any
+    u_low: Any
+    u_high: Any
+    x_low: Any
+    x_high: Any
+    C: Any
+    D: Any
+    row_low: Any
+    row_high: Any
+
+
+MATRIX_FIELDS = ("A", "B", "K", "Q", "R", "C", "D")
+BOUND_FIELDS = ("u_low", "u_high", "x_low", "x_high", "row_low", "row_high")
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    """ADMM settings (static; see the module docstring for the tests they enter).
+
+    Attributes:
+        max_iterations: cap on iterations (rounded up to a multiple of ``check_every``). check_every: iterations
+            between residual checks, infeasibility tests and step-size updates.
+        eps_abs, eps_rel: stopping test on the scaled problem (both 0: run to the cap). eps_infeasible: the
+            certificate's tolerance.
+        rho: the initial step size ``t`` (a warm start brings its own); ``None``: the smallest generalised
+            eigenvalue of ``(H, G^T G)`` for ``solve_prepared`` (``suggested_rho``: on the 2D quadrotor's QP it
+            reached 5e-4 N in 25 iterations where ``sqrt(lam_min lam_max)`` needed 50), ``DEFAULT_RHO`` for
+            ``solve`` (pass the ``suggested_rho`` of a typical problem). adaptive_rho: update ``t`` at the checks
+            (``False``: ``prepare`` folds the products for the initial ``t``). rho_min, rho_max: bounds of ``t``.
+        alpha: relaxation in (0, 2). refactor_ratio: ``solve`` refactorises when ``t`` has moved by this factor.
+        polish_rounds: rounds of the active-set polish after the ADMM (0: none; see ``_polish``).
+        polish_tol: the largest violation of a hard row (in half-widths of its interval) and of complementarity a
+            polished plan may have to be accepted (``None``: the square root of the dtype's resolution, 3e-4 in
+            float32, 1.5e-8 in float64).
+    """
+
+    max_iterations: int = 200
+    check_every: int = 10
+    eps_abs: float = 1e-5
+    eps_rel: float = 1e-5
+    eps_infeasible: float = 1e-5
+    rho: float | None = None
+    adaptive_rho: bool = True
+    rho_min: float = 1e-9
+    rho_max: float = 1e6
+    alpha: float = 1.6
+    refactor_ratio: float = 5.0
+    polish_rounds: int = 3
+    polish_tol: float | None = None
+
+    def __post_init__(self):
+        if self.max_iterations < 1 or self.check_every < 1:
+            raise ValueError(
+                f"Settings: max_iterations and check_every must be >= 1, got {self.max_iterations}, {self.check_every}"
+            )
+        if not 0.0 < self.alpha < 2.0:
+            raise ValueError(f"Settings.alpha: must be in (0, 2), got {self.alpha!r}")
+        for name in ("rho", "rho_min", "rho_max", "refactor_ratio"):
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise ValueError(f"Settings.{name}: must be positive, got {value!r}")
+        if self.polish_rounds < 0:
+            raise ValueError(f"Settings.polish_rounds: must be >= 0, got {self.polish_rounds!r}")
+        if self.polish_tol is not None and self.polish_tol < 0:
+            raise ValueError(f"Settings.polish_tol: must be >= 0, got {self.polish_tol!r}")
+        for name in ("eps_abs", "eps_rel", "eps_infeasible"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"Settings.{name}: must be >= 0, got {getattr(self, name)!r}")
+
+    @property
+    def segment(self) -> int:
+        """Iterations between checks."""
+        return min(self.check_every, self.max_iterations)
+
+    @property
+    def cap(self) -> int:
+        """The iteration cap actually run: ``max_iterations`` rounded up to a multiple of ``segment``."""
+        return -(-self.max_iterations // self.segment) * self.segment
+
+
+class Warm(NamedTuple):
+    """A warm start in the problem's units, so that it survives a change of offsets and scaling.
+
+    Attributes:
+        values: (p,) the rows' values ``s`` (m, rad, N, ...). multipliers: (p,) their multipliers.
+        rho: scalar step size; ``0`` (or anything non-finite) means "no warm start".
+    """
+
+    values: Any
+    multipliers: Any
+    rho: Any
+
+
+class Solution(NamedTuple):
+    """The result of one solve (see the module docstring for ``status``).
+
+    Attributes:
+        u: (N, nu) inputs (within their box). x: (N + 1, nx) the states of the plan, ``x[0] = x_init``.
+        slack: (N, stage_rows) the soft rows' violations ``e >= 0`` (row units; 0 for the others; with
+            ``slack="shared"`` each row's worst over the horizon, the same at every stage).
+        multipliers: (N, stage_rows) of the rows in the problem's units (> 0: the upper bound pushes, < 0: the lower
+            one), in the order inputs, state boxes, general rows.
+        warm: the ``Warm`` of this solution (``shift`` it for the next step).
+        status: int32. iterations: int32. primal_residual, dual_residual: the scaled residuals at the last check.
+        violation: the largest violation of a hard row by the plan (row units; ``inf`` after NUMERICAL), which
+            tells an unconverged but usable plan from an unusable one.
+    """
+
+    u: Any
+    x: Any
+    slack: Any
+    multipliers: Any
+    warm: Warm
+    status: Any
+    iterations: Any
+    primal_residual: Any
+    dual_residual: Any
+    violation: Any
+
+
+# --------------------------------------------------------------------------------------------- condensing
+def _maps(layout: Layout, A, B, K):
+    """``(Ex (N, nx, n), Eu (N, nu, n))``: ``x_{k+1}`` and ``u_k`` as linear maps of ``v`` (offsets apart)."""
+    N, nu, n = layout.horizon, layout.nu, layout.num_decisions
+    select = np.zeros((N, nu, n))
+    for k in range(N):
+        select[k, :, k * nu : (k + 1) * nu] = np.eye(nu)
+
+    def body(E, inputs):
+        A_k, B_k, K_k, S_k = inputs
+        Eu = S_k - K_k @ E
+        E = A_k @ E + B_k @ Eu
+        return E, (E, Eu)
+
+    E0 = jnp.zeros((layout.nx, n), A.dtype)
+    return lax.scan(body, E0, (A, B, K, jnp.asarray(select, A.dtype)))[1]
+
+
+def _offsets(A, B, K, c, x_init):
+    """``(ex (N, nx), eu (N, nu))``: the states and inputs of ``v = 0`` (the pre-stabilised trajectory)."""
+
+    def body(x, inputs):
+        A_k, B_k, K_k, c_k = inputs
+        u = -K_k @ x
+        x = A_k @ x + B_k @ u + c_k
+        return x, (x, u)
+
+    return lax.scan(body, x_init, (A, B, K, c))[1]
+
+
+def _stage_values(layout: Layout, x, u, C, D):
+    """The rows of every stage, ``[u_k; x_{k+1}[x_rows]; C_k x_{k+1} + D_k u_k]``, from stacked ``x`` (N, nx, ...)
+    and ``u`` (N, nu, ...) (maps or vectors alike)."""
+    parts = [u, x[:, np.asarray(layout.x_rows, dtype=int)]]
+    if layout.num_rows:
+        parts.append(jnp.einsum("kmx,kx...->km...", C, x) + jnp.einsum("kmu,ku...->km...", D, u))
+    return jnp.concatenate(parts, axis=1)
+
+
+def _rows(layout: Layout, Ex, Eu, C, D):
+    """The unscaled rows ``G`` (p, n), stage-major."""
+    return _stage_values(layout, Ex, Eu, C, D).reshape(layout.num_dense, layout.num_decisions)
+
+
+def _row_offsets(layout: Layout, ex, eu, C, D):
+    """The rows' values at ``v = 0`` (p,)."""
+    return _stage_values(layout, ex, eu, C, D).reshape(-1)
+
+
+def _row_bounds(layout: Layout, u_low, u_high, x_low, x_high, row_low, row_high):
+    """``(low, high)`` (p,) of the rows."""
+    N = layout.horizon
+    extra = layout.num_rows > 0
+    lo = jnp.concatenate([jnp.reshape(a, (N, -1)) for a in (u_low, x_low) + ((row_low,) if extra else ())], axis=1)
+    hi = jnp.concatenate([jnp.reshape(a, (N, -1)) for a in (u_high, x_high) + ((row_high,) if extra else ())], axis=1)
+    return lo.reshape(-1), hi.reshape(-1)
+
+
+def _row_scales(layout: Layout, bounds, G, scale):
+    """(p,) each row's unit: the geometric mean of half the width of its interval (1 where a bound is infinite) and
+    the row's Euclidean norm in the scaled objective's units (``|G_i| / sqrt(scale)``, OSQP's equilibration).
+
+    Either alone fails somewhere: in half-widths a state row with one far bound (1D quadrotor, z in [-10, 1.5] m)
+    weighs 20x less than an input row, and the ADMM needed 20,000 iterations where OSQP needs 175; with unit rows
+    the 3D quadrotor's QP with its position boxes left 5% of 200 random states 1e-3 N or more from qpOASES after
+    1,000 iterations. The mean met 1e-3 N on all four systems' parity sets (200 states each, float32).
+    """
+    lo, hi = _row_bounds(layout, *bounds)
+    width = 0.5 * (hi - lo)
+    width = jnp.where(jnp.isfinite(width) & (width > 0), width, 1.0)
+    row_norm = jnp.linalg.norm(G, axis=1) / jnp.sqrt(scale)
+    row_norm = jnp.where(row_norm > 0, row_norm, 1.0)
+    return jnp.sqrt(width * row_norm)
+
+
+def _hessian(Q, R, Ex, Eu):
+    """The unscaled condensed Hessian (n, n)."""
+    H = jnp.einsum("kxn,kxy,kym->nm", Ex, Q, Ex) + jnp.einsum("kun,kuv,kvm->nm", Eu, R, Eu)
+    return 0.5 * (H + H.T)
+
+
+def _gradient(Q, R, q, r, Ex, Eu, ex, eu):
+    """The unscaled condensed linear term (n,)."""
+    g = jnp.einsum("kxn,kx->n", Ex, jnp.einsum("kxy,ky->kx", Q, ex) + q)
+    return g + jnp.einsum("kun,ku->n", Eu, jnp.einsum("kuv,kv->ku", R, eu) + r)
+
+
+def _input_scale(layout: Layout, H):
+    """The objective scale: the largest diagonal entry of ``H`` (the inputs')."""
+    return jnp.max(jnp.diagonal(H))
+
+
+class _Scaled(NamedTuple):
+    """One copy's scaled row data, as the ADMM sees it."""
+
+    lo: Any  # (p,) (low - offset) / norm
+    hi: Any
+    off: Any  # (p,) the rows' values at v = 0 (problem units)
+    norms: Any  # (p,) row units
+    scale: Any  # objective scale
+
+
+def _scaled(layout: Layout, off, bounds, norms, scale) -> _Scaled:
+    lo, hi = _row_bounds(layout, *bounds)
+    return _Scaled(lo=(lo - off) / norms, hi=(hi - off) / norms, off=off, norms=norms, scale=scale)
+
+
+# --------------------------------------------------------------------------------------------- prox
+def _stage_prox(v, lo, hi, l1, l2, t):
+    """Per row: ``argmin_s l1 e + 1/2 l2 e^2 + t/2 (s - v)^2`` with ``e`` the distance of ``s`` to ``[lo, hi]``
+    (scaled units)."""
+    above = hi + jnp.maximum(0.0, (t * (v - hi) - l1) / (t + l2))
+    below = lo - jnp.maximum(0.0, (t * (lo - v) - l1) / (t + l2))
+    return jnp.where(v > hi, above, jnp.where(v < lo, below, v))
+
+
+def _shared_level(excess, weight, l1, l2, t):
+    """The slack ``e >= 0`` (problem units) of one side of one row shared by the stages:
+    ``argmin_e l1 e + 1/2 l2 e^2 + t/2 sum_k weight_k^2 (excess_k - e)_+^2``, exactly: the derivative is piecewise
+    linear and increasing, with kinks at the stages' excesses (sorted; ``-inf`` for an infinite bound).
+
+    Args:
+        excess: (N,) ``(v_k - high_k) * norm_k``, the stage's violation in problem units. weight: (N,) ``1 / norm``.
+    """
+    order = jnp.argsort(-excess)
+    b, w2 = excess[order], weight[order] ** 2
+    finite = jnp.isfinite(b)
+    s1 = jnp.cumsum(jnp.where(finite, w2 * b, 0.0))
+    s0 = jnp.cumsum(jnp.where(finite, w2, 0.0))
+    level = (t * s1 - l1) / (l2 + t * s0)
+    below_next = jnp.concatenate([b[1:], jnp.full((1,), -jnp.inf, b.dtype)])
+    valid = finite & (level <= b) & (level >= below_next)
+    return jnp.maximum(jnp.max(jnp.where(valid, level, 0.0)), 0.0)
+
+
+def _shared_prox(layout: Layout, data: _Scaled, v, t, l1, l2):
+    """The prox of the shared slacks' price on the soft rows, the projection on the others (scaled units)."""
+    N, R = layout.horizon, layout.stage_rows
+    soft = np.flatnonzero(layout.soft)
+    projected = jnp.clip(v, data.lo, data.hi)
+    V, lo, hi, norms = (a.reshape(N, R)[:, soft] for a in (v, data.lo, data.hi, data.norms))
+    weight = 1.0 / norms
+    per_row = jax.vmap(_shared_level, in_axes=(1, 1, None, None, None))
+    e_up = per_row((V - hi) * norms, weight, l1, l2, t)
+    e_low = per_row((lo - V) * norms, weight, l1, l2, t)
+    S = jnp.clip(V, lo - weight * e_low, hi + weight * e_up)
+    return projected.reshape(N, R).at[:, soft].set(S).reshape(-1)
+
+
+def _projection(layout: Layout, data: _Scaled):
+    """``project(v, t)``: the ADMM's prox for this layout (static choice: a clip when no row is soft)."""
+    if not any(layout.soft):
+        return lambda v, t: jnp.clip(v, data.lo, data.hi)
+    l1 = layout.l1 / data.scale  # objective units per problem unit of violation
+    l2 = layout.l2 / data.scale
+    if layout.slack == "shared":
+        return lambda v, t: _shared_prox(layout, data, v, t, l1, l2)
+    mask = np.tile(np.asarray(layout.soft, float), layout.horizon)
+    l1_rows, l2_rows = l1 * mask * data.norms, l2 * mask * data.norms**2  # per scaled unit
+    hard = mask == 0
+
+    def project(v, t):
+        return jnp.where(hard, jnp.clip(v, data.lo, data.hi), _stage_prox(v, data.lo, data.hi, l1_rows, l2_rows, t))
+
+    return project
+
+
+# --------------------------------------------------------------------------------------------- the ADMM
+class _Operators(NamedTuple):
+    """The linear algebra of one copy, as closures.
+
+    - ``update(s, y, t, factor) -> (primal~, s~)``: the v-update from ``(s, y)`` (``primal~`` is ``v~``, or
+      ``xi~ = T^-1 v~`` on the shared path, or what gives it there) and ``s~ = G v~``;
+    - ``refactor(t, factor) -> (factor, t)``: the factor for step size ``t`` and the step size it is for;
+    - ``dual(primal~, y) -> (residual, terms)``: the dual residual ``H v + g + G^T y`` (in the path's coordinates)
+      and the three terms whose largest norm scales it;
+    - ``GT(y)``: ``G^T y`` in the same coordinates; ``to_v(primal)``: the decisions.
+    """
+
+    update: Any
+    refactor: Any
+    dual: Any
+    GT: Any
+    to_v: Any
+
+
+def _norm(a):
+    return jnp.max(jnp.abs(a), initial=0.0)
+
+
+def _support(dy, lo, hi):
+    """``sum(hi max(dy, 0) + lo min(dy, 0))`` with ``0 * inf = 0``."""
+    return jnp.sum(jnp.where(dy > 0, hi * dy, 0.0)) + jnp.sum(jnp.where(dy < 0, lo * dy, 0.0))
+
+
+class _Result(NamedTuple):
+    primal: Any  # the last v-update (v~, or its representation on the shared path)
+    s: Any
+    y: Any
+    t: Any
+    status: Any
+    iterations: Any
+    r_prim: Any
+    r_dual: Any
+    violation: Any  # the largest violation of a hard row by the last v-update (problem units)
+
+
+def _admm(layout: Layout, ops: _Operators, data: _Scaled, s0, y0, t0, factor, settings: Settings) -> _Result:
+    """Run the ADMM on one copy from ``(s0, y0, t0)`` (scaled rows)."""
+    dtype = s0.dtype
+    alpha = settings.alpha
+    hard = jnp.asarray(~np.tile(np.asarray(layout.soft, bool), layout.horizon))
+    tiny = jnp.finfo(dtype).tiny
+    project = _projection(layout, data)
+
+    def iterate(s, y, t, factor):
+        primal, s_tilde = ops.update(s, y, t, factor)
+        s_hat = alpha * s_tilde + (1.0 - alpha) * s
+        s_new = project(s_hat + y / t, t)
+        dy = t * (s_hat - s_new)
+        return primal, s_tilde, s_new, y + dy, dy
+
+    def check(primal, s_tilde, s, y, dy, t):
+        r_prim = _norm(s_tilde - s)
+        residual, terms = ops.dual(primal, y)
+        r_dual = _norm(residual)
+        scale_prim = jnp.maximum(_norm(s_tilde), _norm(s))
+        scale_dual = jnp.maximum(jnp.maximum(_norm(terms[0]), _norm(terms[1])), _norm(terms[2]))
+        converged = (r_prim <= settings.eps_abs + settings.eps_rel * scale_prim) & (
+            r_dual <= settings.eps_abs + settings.eps_rel * scale_dual
+        )
+        dy = jnp.where(hard, dy, 0.0)  # a soft row can always be met: no certificate from it
+        dy_norm = _norm(dy)
+        eps = settings.eps_infeasible * dy_norm
+        infeasible = (dy_norm > 0) & (_norm(ops.GT(dy)) <= eps) & (_support(dy, data.lo, data.hi) <= -eps)
+        relative_prim = r_prim / jnp.maximum(scale_prim, tiny)
+        relative_dual = jnp.maximum(r_dual / jnp.maximum(scale_dual, tiny), tiny)
+        ratio = jnp.sqrt(relative_prim / relative_dual)
+        ratio = jnp.where(jnp.isfinite(ratio) & (ratio > 0), ratio, 1.0)
+        t_new = jnp.clip(t * ratio, settings.rho_min, settings.rho_max)
+        excess = jnp.maximum(jnp.maximum(s_tilde - data.hi, data.lo - s_tilde), 0.0) * data.norms
+        violation = _norm(jnp.where(hard, excess, 0.0))
+        return converged, infeasible, r_prim, r_dual, t_new, violation
+
+    def body(carry):
+        _, s, y, t, factor, _, _, _, _, _, iterations, _ = carry
+
+        def light(_, sy):
+            return iterate(sy[0], sy[1], t, factor)[2:4]
+
+        s, y = lax.fori_loop(0, settings.segment - 1, light, (s, y))
+        primal, s_tilde, s, y, dy = iterate(s, y, t, factor)
+        converged, infeasible, r_prim, r_dual, t_new, violation = check(primal, s_tilde, s, y, dy, t)
+        done = converged | infeasible | ~(jnp.isfinite(r_prim) & jnp.isfinite(r_dual))
+        if settings.adaptive_rho:
+            factor, t = ops.refactor(jnp.where(done, t, t_new), factor)
+        out = (primal, s, y, t, factor, converged, infeasible, r_prim, r_dual, violation)
+        return *out, iterations + settings.segment, done
+
+    def cond(carry):
+        *_, iterations, done = carry
+        return (~done) & (iterations < settings.cap)
+
+    factor, t0 = ops.refactor(t0, factor)
+    primal0, _ = ops.update(s0, y0, t0, factor)
+    false, zero = jnp.zeros((), bool), jnp.zeros((), dtype)
+    init = (primal0, s0, y0, t0, factor, false, false, zero, zero, zero, jnp.zeros((), jnp.int32), false)
+    out = lax.while_loop(cond, body, init)
+    primal, s, y, t, _, converged, infeasible, r_prim, r_dual, violation, iterations, _ = out
+    status = jnp.where(converged, CONVERGED, jnp.where(infeasible, INFEASIBLE, MAX_ITERATIONS))
+    finite = jnp.isfinite(r_prim) & jnp.isfinite(r_dual) & jnp.isfinite(t)
+    for a in (primal, s, y):
+        finite = finite & jnp.all(jnp.isfinite(a))
+    status = jnp.where(finite, status, NUMERICAL).astype(jnp.int32)
+    return _Result(primal, s, y, t, status, iterations, r_prim, r_dual, violation)
+
+
+class _PolishOps(NamedTuple):
+    """The linear algebra of the polish, as closures (one copy).
+
+    - ``free(y) -> (primal, s)``: the minimiser of the objective plus ``y^T G v`` (no rows) and its rows;
+    - ``schur(index) -> S``: ``G_I H^-1 G_I^T`` (k, k) of the rows ``index`` (k,);
+    - ``correct(primal, index, lam) -> (primal, s)``: the minimiser with the extra force ``G_I^T lam``.
+    """
+
+    free: Any
+    schur: Any
+    correct: Any
+
+
+def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, settings: Settings) -> _Result:
+    """Refine the ADMM's plan by a primal-dual active-set method on the hard rows (OSQP's polish, iterated).
+
+    The soft rows keep the ADMM's multipliers as fixed forces. Each round solves the equality-constrained QP of the
+    current active set (the rows at a bound whose multiplier pushes outwards, at most ``n`` of them, gathered into
+    an ``(n, n)`` Schur system: one small Cholesky per copy and round) and updates the set by the primal-dual rule
+    ``y_i + (s_i - bound_i) > 0`` (Hintermueller et al. 2002). The result replaces the ADMM's, with status
+    ``CONVERGED``, only if every hard row holds within ``polish_tol`` (relative to its half-width) and no active
+    multiplier has the wrong sign by more than ``polish_tol``; otherwise the ADMM's plan stands. Near the solution
+    this converges in one or two rounds where the ADMM needs thousands of iterations (degenerate active sets along
+    a state bound).
+    """
+    N, R, n = layout.horizon, layout.stage_rows, layout.num_decisions
+    dtype = result.s.dtype
+    hard = jnp.asarray(~np.tile(np.asarray(layout.soft, bool), N))
+    lo, hi = data.lo, data.hi
+    y_soft = jnp.where(hard, 0.0, result.y)
+    primal_free, s_free = ops.free(y_soft)
+    tol = float(np.sqrt(np.finfo(dtype).eps)) if settings.polish_tol is None else settings.polish_tol
+    k = min(n, N * R)
+
+    def active_sets(s, y):
+        upper = hard & jnp.isfinite(hi) & (y + (s - hi) > 0)
+        lower = hard & jnp.isfinite(lo) & (y + (s - lo) < 0)
+        return upper, lower & ~upper
+
+    def acceptable(primal, s, y):
+        violation = jnp.where(hard, jnp.maximum(jnp.maximum(s - hi, lo - s), 0.0), 0.0)
+        at_high = jnp.isfinite(hi) & (s >= hi - tol)
+        at_low = jnp.isfinite(lo) & (s <= lo + tol)
+        # A multiplier pushes only at its own bound, with the right sign.
+        complementary = ~jnp.any(hard & (((y > tol) & ~at_high) | ((y < -tol) & ~at_low)))
+        finite = jnp.all(jnp.isfinite(s)) & jnp.all(jnp.isfinite(y)) & jnp.all(jnp.isfinite(primal))
+        return (jnp.max(violation, initial=0.0) <= tol) & complementary & finite
+
+    def round_(carry, _):
+        upper, lower, best, accepted = carry
+        active = upper | lower
+        # The active rows first (by index), then the others as padding; at most k of them take part.
+        index = jnp.argsort(jnp.where(active, 0, 1) * (N * R) + jnp.arange(N * R))[:k]
+        target = jnp.where(upper, hi, lo)[index]
+        mask = active[index].astype(dtype)
+        # The rows not in the set have lambda = 0: identity rows decouple them.
+        M = mask[:, None] * ops.schur(index) * mask[None, :] + jnp.diag(1.0 - mask)
+        lam = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(M), True), mask * (s_free[index] - target)) * mask
+        primal, s = ops.correct(primal_free, index, lam)
+        y = jnp.zeros(N * R, dtype).at[index].set(lam)
+        good = (jnp.sum(active) <= k) & acceptable(primal, s, y) & ~accepted
+        best = jax.tree.map(lambda a, b: jnp.where(good, a, b), (primal, s, y), best)
+        return (*active_sets(s, y), best, accepted | good), None
+
+    upper, lower = active_sets(result.s, result.y)
+    init = (upper, lower, (result.primal, result.s, jnp.zeros_like(result.y)), jnp.zeros((), bool))
+    (_, _, (primal, s, y), ok), _ = lax.scan(round_, init, None, length=settings.polish_rounds)
+    ok = ok & (result.status != NUMERICAL)
+    # The hard rows at their polished values (within tol of their bounds), the soft rows at the ADMM's.
+    s_final = jnp.where(hard, jnp.clip(s, lo, hi), result.s)
+    y_final = jnp.where(hard, y, result.y)
+    violation = _norm(jnp.where(hard, jnp.maximum(jnp.maximum(s - hi, lo - s), 0.0) * data.norms, 0.0))
+    pick = lambda a, b: jnp.where(ok, a, b)  # noqa: E731
+    return result._replace(
+        primal=pick(primal, result.primal),
+        s=pick(s_final, result.s),
+        y=pick(y_final, result.y),
+        status=jnp.where(ok, CONVERGED, result.status).astype(jnp.int32),
+        violation=pick(violation, result.violation),
+    )
+
+
+def _start(data: _Scaled, warm: Warm | None, settings: Settings, rho0):
+    """Scaled ``(s0, y0, t0)`` from a warm start in problem units (cold: the pre-stabilised trajectory, y = 0)."""
+    dtype = data.lo.dtype
+    p = data.lo.shape[0]
+    if warm is None:
+        return jnp.zeros(p, dtype), jnp.zeros(p, dtype), jnp.asarray(rho0, dtype)
+    values, multipliers, rho = (jnp.asarray(a, dtype) for a in warm)
+    ok = jnp.all(jnp.isfinite(values)) & jnp.all(jnp.isfinite(multipliers)) & jnp.isfinite(rho) & (rho > 0)
+    s0 = jnp.where(ok, (values - data.off) / data.norms, 0.0)
+    y0 = jnp.where(ok, multipliers * data.norms / data.scale, 0.0)
+    t0 = jnp.clip(jnp.where(ok, rho, rho0), settings.rho_min, settings.rho_max)
+    return s0, y0, t0
+
+
+def _finish(layout: Layout, data: _Scaled, maps, x_init, result: _Result, v) -> Solution:
+    """The ``Solution`` (never NaN: after a non-finite iterate, the pre-stabilised trajectory clipped, status
+    NUMERICAL)."""
+    N, R = layout.horizon, layout.stage_rows
+    Ex, ex = maps
+    ok = result.status != NUMERICAL
+    v = jnp.where(ok, v, 0.0)
+    s = jnp.where(ok, result.s, jnp.clip(jnp.zeros_like(result.s), data.lo, data.hi))
+    y = jnp.where(ok, result.y, 0.0)
+    t = jnp.where(ok, result.t, 0.0)
+    values = jnp.where(jnp.isfinite(data.off), s * data.norms + data.off, 0.0)
+    multipliers = y * data.scale / data.norms
+    x = jnp.concatenate([x_init[None], jnp.einsum("kxn,n->kx", Ex, v) + ex], axis=0)
+    x = jnp.where(jnp.isfinite(x), x, 0.0)
+    stages = values.reshape(N, R)
+    return Solution(
+        u=stages[:, : layout.nu],
+        x=x,
+        slack=_slack(layout, data, stages),
+        multipliers=multipliers.reshape(N, R),
+        warm=Warm(values, multipliers, t),
+        status=result.status,
+        iterations=result.iterations,
+        primal_residual=jnp.where(jnp.isfinite(result.r_prim), result.r_prim, jnp.inf),
+        dual_residual=jnp.where(jnp.isfinite(result.r_dual), result.r_dual, jnp.inf),
+        violation=jnp.where(ok & jnp.isfinite(result.violation), result.violation, jnp.inf),
+    )
+
+
+def _slack(layout: Layout, data: _Scaled, stages):
+    """(N, stage_rows) violations of the soft rows (row units), 0 for the hard rows."""
+    N, R = layout.horizon, layout.stage_rows
+    mask = np.asarray(layout.soft)
+    if not mask.any():
+        return jnp.zeros((N, R), stages.dtype)
+    lo = (data.lo * data.norms + data.off).reshape(N, R)
+    hi = (data.hi * data.norms + data.off).reshape(N, R)
+    excess = jnp.where(mask, jnp.maximum(stages - hi, 0.0) + jnp.maximum(lo - stages, 0.0), 0.0)
+    if layout.slack == "shared":
+        upper = jnp.max(jnp.maximum(stages - hi, 0.0), axis=0)
+        lower = jnp.max(jnp.maximum(lo - stages, 0.0), axis=0)
+        excess = jnp.broadcast_to(jnp.where(mask, upper + lower, 0.0), (N, R))
+    return excess
+
+
+# --------------------------------------------------------------------------------------------- per-copy path
+def solve(layout: Layout, qp: HorizonQP, x_init, warm: Warm | None = None, settings: Settings = Settings()) -> Solution:
+    """Solve one horizon QP with the copy's own matrices (jit/vmap-able; condenses and factorises here).
+
+    Args:
+        layout: the static ``Layout``. qp: this copy's ``HorizonQP``. x_init: (nx,) the initial state.
+        warm: a ``Warm`` (e.g. ``shift(layout, previous.warm)``) or ``None``. settings: ``Settings``.
+
+    Returns:
+        ``Solution``.
+    """
+    x_init = jnp.asarray(x_init)
+    dtype = x_init.dtype
+    qp = HorizonQP(*(jnp.asarray(a, dtype) for a in qp))
+    Ex, Eu = _maps(layout, qp.A, qp.B, qp.K)
+    ex, eu = _offsets(qp.A, qp.B, qp.K, qp.c, x_init)
+    H = _hessian(qp.Q, qp.R, Ex, Eu)
+    g = _gradient(qp.Q, qp.R, qp.q, qp.r, Ex, Eu, ex, eu)
+    G = _rows(layout, Ex, Eu, qp.C, qp.D)
+    scale = jnp.maximum(_input_scale(layout, H), jnp.finfo(dtype).tiny)
+    bounds = tuple(getattr(qp, name) for name in BOUND_FIELDS)
+    norms = _row_scales(layout, bounds, G, scale)
+    data = _scaled(layout, _row_offsets(layout, ex, eu, qp.C, qp.D), bounds, norms, scale)
+    Hs, Gs, gs = H / scale, G / norms[:, None], g / scale
+    GTG = Gs.T @ Gs
+    ratio = settings.refactor_ratio
+
+    def factorize(t):
+        L = jnp.linalg.cholesky(Hs + t * GTG)
+        return jax.scipy.linalg.cho_solve((L, True), jnp.concatenate([Gs.T, gs[:, None]], axis=1))
+
+    def update(s, y, t, factor):
+        solved, _ = factor  # (n, p + 1): (H + t G^T G)^-1 [G^T, g]
+        v = solved[:, :-1] @ (t * s - y) - solved[:, -1]
+        return v, Gs @ v
+
+    def refactor(t, factor):
+        solved, t_old = factor
+        stale = (t > ratio * t_old) | (t < t_old / ratio)
+        # Without a refactorisation the step size stays the factorised one (the two must agree).
+        factor = lax.cond(stale, lambda: (factorize(t), t), lambda: (solved, t_old))
+        return factor, factor[1]
+
+    def dual(v, y):
+        Hv, GTy = Hs @ v, Gs.T @ y
+        return Hv + gs + GTy, (Hv, GTy, gs)
+
+    ops = _Operators(update, refactor, dual, lambda y: Gs.T @ y, lambda v: v)
+    s0, y0, t0 = _start(data, warm, settings, DEFAULT_RHO if settings.rho is None else settings.rho)
+    # A factor stale for every t, so that the first refactor computes it.
+    factor = (jnp.zeros((Hs.shape[0], Gs.shape[0] + 1), dtype), jnp.asarray(jnp.inf, dtype))
+    result = _admm(layout, ops, data, s0, y0, t0, factor, settings)
+    if settings.polish_rounds:
+        L_H = jnp.linalg.cholesky(Hs)
+        H_inv = lambda a: jax.scipy.linalg.cho_solve((L_H, True), a)  # noqa: E731
+
+        def free(y):
+            v = -H_inv(gs + Gs.T @ y)
+            return v, Gs @ v
+
+        def schur(index):
+            rows = Gs[index]
+            return rows @ H_inv(rows.T)
+
+        def correct(v, index, lam):
+            v = v - H_inv(Gs[index].T @ lam)
+            return v, Gs @ v
+
+        result = _polish(layout, _PolishOps(free, schur, correct), data, result, settings)
+    return _finish(layout, data, (Ex, ex), x_init, result, result.primal)
+
+
+# --------------------------------------------------------------------------------------------- shared path
+class Prepared(NamedTuple):
+    """What ``prepare`` computes once for a family of QPs with shared matrices (arrays; a pytree).
+
+    With ``theta = [x_init; vec c]`` (nx + N nx) and ``vectors = [theta; vec q; vec r]``:
+
+    Attributes:
+        GT: (p, n) ``G T`` (the scaled rows in eigen-coordinates). lam: (n,) generalised eigenvalues. T: (n, n).
+        rho: the initial step size (``settings.rho`` or ``lam.min()``). fixed: ``None`` unless
+            ``adaptive_rho=False``: ``GT diag(1 / (lam + rho)) GT^T`` (p, p).
+        h_map: (n, len(vectors)): ``T^T g / scale = h_map vectors``.
+        off_map: (p, len(theta)): the rows' values at ``v = 0``. ex_map: (N nx, len(theta)): the states there.
+        Ex: (N, nx, n). norms: (p,). scale: scalar.
+    """
+
+    GT: Any
+    lam: Any
+    T: Any
+    rho: Any
+    fixed: Any
+    h_map: Any
+    off_map: Any
+    ex_map: Any
+    Ex: Any
+    norms: Any
+    scale: Any
+
+
+def _check_template(template: HorizonQP) -> dict:
+    """The template's matrices as float64 numpy arrays, checked."""
+    mats = {name: np.asarray(getattr(template, name), dtype=np.float64) for name in MATRIX_FIELDS}
+    for name, value in mats.items():
+        if not np.all(np.isfinite(value)):
+            raise ValueError(f"prepare: template.{name} has non-finite entries")
+    R = mats["R"]
+    if np.min(np.linalg.eigvalsh(0.5 * (R + np.swapaxes(R, 1, 2)))) <= 0:
+        raise ValueError("prepare: template.R must be positive definite at every stage")
+    return mats
+
+
+def prepare(layout: Layout, template: HorizonQP, settings: Settings = Settings(), dtype=None) -> Prepared:
+    """Precompute, in float64, everything of a QP family whose matrices (``A``, ``B``, ``K``, ``Q``, ``R``, ``C``,
+    ``D``) are the template's for every copy; ``solve_prepared`` then takes the vectors (``x_init``, ``c``, ``q``,
+    ``r``, bounds). The template's bounds set the rows' units (``_row_scales``) and nothing else; its other vectors
+    are not used.
+
+    Raises:
+        ValueError: non-finite matrices, or an ``R`` that is not positive definite.
+    """
+    dtype = jnp.zeros(()).dtype if dtype is None else dtype
+    mats = _check_template(template)
+    N, nx, nu = layout.horizon, layout.nx, layout.nu
+    n_theta = nx + N * nx
+    bounds = tuple(np.asarray(getattr(template, name), dtype=np.float64) for name in BOUND_FIELDS)
+    with jax.enable_x64(True):
+        m = {name: jnp.asarray(value) for name, value in mats.items()}
+        Ex, Eu = _maps(layout, m["A"], m["B"], m["K"])
+        H = _hessian(m["Q"], m["R"], Ex, Eu)
+        G = _rows(layout, Ex, Eu, m["C"], m["D"])
+        norms = _row_scales(layout, bounds, G, jnp.maximum(jnp.max(jnp.diagonal(H)), np.finfo(np.float64).tiny))
+
+        def offsets(theta):
+            return _offsets(m["A"], m["B"], m["K"], theta[nx:].reshape(N, nx), theta[:nx])
+
+        def gradient(vectors):
+            ex, eu = offsets(vectors[:n_theta])
+            q = vectors[n_theta : n_theta + N * nx].reshape(N, nx)
+            r = vectors[n_theta + N * nx :].reshape(N, nu)
+            return _gradient(m["Q"], m["R"], q, r, Ex, Eu, ex, eu)
+
+        g_map = jax.jacfwd(gradient)(jnp.zeros(n_theta + N * (nx + nu)))
+        off_map = jax.jacfwd(lambda theta: _row_offsets(layout, *offsets(theta), m["C"], m["D"]))(jnp.zeros(n_theta))
+        ex_map = jax.jacfwd(lambda theta: offsets(theta)[0].reshape(-1))(jnp.zeros(n_theta))
+        H, G, Ex, norms, g_map, off_map, ex_map = (np.asarray(a) for a in (H, G, Ex, norms, g_map, off_map, ex_map))
+
+    scale = max(float(np.max(np.diagonal(H))), np.finfo(np.float64).tiny)
+    Hs, Gs = H / scale, G / norms[:, None]
+    # Generalised eigenvectors of (H, W = G^T G): with W = L L^T, L^-1 H L^-T = U diag(lam) U^T and T = L^-T U.
+    W = Gs.T @ Gs
+    L_inv = np.linalg.inv(np.linalg.cholesky(0.5 * (W + W.T)))
+    C = L_inv @ Hs @ L_inv.T
+    lam, U = np.linalg.eigh(0.5 * (C + C.T))
+    T = L_inv.T @ U
+    GT = Gs @ T
+    rho = float(lam.min()) if settings.rho is None else settings.rho
+    fixed = None if settings.adaptive_rho else (GT / (lam + rho)) @ GT.T
+    cast = lambda a: None if a is None else jnp.asarray(a, dtype)  # noqa: E731
+    return Prepared(
+        GT=cast(GT),
+        lam=cast(lam),
+        T=cast(T),
+        rho=cast(rho),
+        fixed=cast(fixed),
+        h_map=cast(T.T @ g_map / scale),
+        off_map=cast(off_map),
+        ex_map=cast(ex_map),
+        Ex=cast(Ex),
+        norms=cast(norms),
+        scale=cast(scale),
+    )
+
+
+def suggested_rho(layout: Layout, template: HorizonQP) -> float:
+    """The initial step size ``prepare`` would choose for ``template``: the smallest generalised eigenvalue of
+    ``(H, G^T G)`` (host, float64). Pass it as ``Settings.rho`` to ``solve`` for problems like ``template``."""
+    return float(prepare(layout, template, Settings(), jnp.float64 if jax.config.jax_enable_x64 else None).rho)
+
+
+def solve_prepared(
+    layout: Layout,
+    prepared: Prepared,
+    x_init,
+    c,
+    q,
+    r,
+    bounds,
+    warm: Warm | None = None,
+    settings: Settings = Settings(),
+) -> Solution:
+    """Solve one QP of a ``prepare``-d family (jit/vmap-able; ``prepared`` is shared by the copies).
+
+    Args:
+        layout, prepared: as given to and returned by ``prepare`` (with the same ``settings``).
+        x_init: (nx,). c: (N, nx). q: (N, nx). r: (N, nu): this copy's vectors (see ``HorizonQP``).
+        bounds: ``(u_low, u_high, x_low, x_high, row_low, row_high)`` shaped as in ``HorizonQP``.
+        warm: a ``Warm`` or ``None``. settings: ``Settings``.
+
+    Returns:
+        ``Solution``.
+    """
+    pr = prepared
+    dtype = pr.GT.dtype
+    N, nx = layout.horizon, layout.nx
+    flat = lambda a: jnp.reshape(jnp.asarray(a, dtype), -1)  # noqa: E731
+    x_init = jnp.asarray(x_init, dtype)
+    theta = jnp.concatenate([x_init, flat(c)])
+    h = pr.h_map @ jnp.concatenate([theta, flat(q), flat(r)])  # T^T g / scale
+    bounds = tuple(jnp.asarray(b, dtype) for b in bounds)
+    data = _scaled(layout, pr.off_map @ theta, bounds, pr.norms, pr.scale)
+
+    if pr.fixed is None:
+
+        def update(s, y, t, factor):
+            xi = (pr.GT.T @ (t * s - y) - h) / (pr.lam + t)
+            return xi, pr.GT @ xi
+
+        def to_xi(primal):
+            return primal
+
+    else:
+        shift_h = pr.GT @ (h / (pr.lam + pr.rho))
+
+        def update(s, y, t, factor):
+            # One (p, p) product per iteration; xi~ = (GT^T (t s - y) - h) / (lam + rho) only at the checks.
+            return t * s - y, pr.fixed @ (t * s - y) - shift_h
+
+        def to_xi(primal):
+            return (pr.GT.T @ primal - h) / (pr.lam + pr.rho)
+
+    def dual(primal, y):
+        # T^T (H v + g + G^T y) with T^T H T = diag(lam): the dual residual in the coordinates xi.
+        xi = to_xi(primal)
+        GTy = pr.GT.T @ y
+        return pr.lam * xi + h + GTy, (pr.lam * xi, GTy, h)
+
+    ops = _Operators(update, lambda t, factor: (factor, t), dual, lambda y: pr.GT.T @ y, lambda p: pr.T @ to_xi(p))
+    s0, y0, t0 = _start(data, warm, settings, pr.rho if settings.rho is None else settings.rho)
+    if pr.fixed is not None:  # the folded products are those of the prepared step size
+        t0 = pr.rho
+    result = _admm(layout, ops, data, s0, y0, t0, (), settings)
+    if settings.polish_rounds:
+        # In the coordinates xi (T^T H T = diag(lam)); on the folded path the primal becomes xi here.
+        result = result._replace(primal=to_xi(result.primal))
+
+        def free(y):
+            xi = -(h + pr.GT.T @ y) / pr.lam
+            return xi, pr.GT @ xi
+
+        def schur(index):
+            rows = pr.GT[index]
+            return (rows / pr.lam) @ rows.T
+
+        def correct(xi, index, lam):
+            xi = xi - (pr.GT[index].T @ lam) / pr.lam
+            return xi, pr.GT @ xi
+
+        result = _polish(layout, _PolishOps(free, schur, correct), data, result, settings)
+        v = pr.T @ result.primal
+    else:
+        v = ops.to_v(result.primal)
+    ex = (pr.ex_map @ theta).reshape(N, nx)
+    return _finish(layout, data, (pr.Ex, ex), x_init, result, v)
+
+
+# --------------------------------------------------------------------------------------------- warm start
+def shift(layout: Layout, warm: Warm, steps=1) -> Warm:
+    """The warm start for the QP ``steps`` (>= 0, may be traced) control steps later: every stage's rows and
+    multipliers move ``steps`` stages ahead (the last stage repeated); ``rho`` is kept."""
+    N, R = layout.horizon, layout.stage_rows
+    index = jnp.minimum(jnp.arange(N) + steps, N - 1)
+
+    def move(a):
+        return a.reshape(N, R)[index].reshape(-1)
+
+    return Warm(move(warm.values), move(warm.multipliers), warm.rho)
+
+
+__all__ = [
+    "CONVERGED",
+    "DEFAULT_RHO",
+    "INFEASIBLE",
+    "MAX_ITERATIONS",
+    "NUMERICAL",
+    "STATUS_NAMES",
+    "HorizonQP",
+    "Layout",
+    "Prepared",
+    "Settings",
+    "Solution",
+    "Warm",
+    "prepare",
+    "shift",
+    "solve",
+    "solve_prepared",
+    "suggested_rho",
+]

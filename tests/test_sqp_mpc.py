@@ -1,0 +1,104 @@
+"""Nonlinear MPC in JAX (``scg_algorithms.mpc.sqp``): SQP's first input against IPOPT's, SQP-RTI's closed-loop RMSE
+against IPOPT's on the same seeded episodes, determinism, no retracing, and option errors."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import scg_jax
+from scg_algorithms.base import Reference
+from scg_algorithms.evaluation import evaluate
+from scg_algorithms.mpc.nonlinear import make_nonlinear_mpc
+from tests.control_helpers import env_and_random_states
+
+CASES = {
+    # system, make() arguments, half-widths of the random states around a random reference point, count
+    "cartpole": ({"system": "cartpole"}, [0.25, 0.5, 0.3, 0.5], 100),
+    "quadrotor_2d": ({"system": "quadrotor_2d", "task": "tracking"}, [0.1, 0.3, 0.1, 0.3, 0.3, 0.5], 25),
+}
+
+
+@pytest.mark.parametrize("system", list(CASES))
+def test_sqp_first_input_equals_ipopts(system):
+    # Float64; the cart-pole's inputs saturate at 10 N from many of these states (the nonlinear swing-up region),
+    # the quadrotor's at its motor limits. IPOPT runs to 1e-10 (at its default 1e-6 its barrier leaves one of these
+    # quadrotor inputs 3.4e-4 N inside the 0.05632 N bound that SQP and IPOPT at 1e-10 put it on); SQP until no
+    # input moves by 1e-6 N.
+    kwargs, spread, count = CASES[system]
+    env, params, reference, steps, states = env_and_random_states(kwargs, spread, count)
+    ipopt = make_nonlinear_mpc(env, params, {"horizon": 20, "tol": 1e-10})
+    pairs = zip(steps, states, strict=True)
+    u_ipopt = np.array([ipopt.act(ipopt.reset(None, reference), x, k, reference)[0] for k, x in pairs])
+    with jax.enable_x64(True):
+        sqp = make_nonlinear_mpc(env, params, {"horizon": 20, "solver": "sqp"})
+        ref64 = Reference(*(jnp.asarray(a) for a in reference))
+        act = jax.jit(jax.vmap(lambda x, k: sqp.act(sqp.reset(None, ref64), x, k, ref64)))
+        u_sqp, state = act(jnp.asarray(states), jnp.asarray(steps))
+    np.testing.assert_allclose(np.asarray(u_sqp), u_ipopt, atol=1e-4)
+    assert np.all(np.asarray(state.num_failures) == 0)
+    assert np.max(np.asarray(state.iterations)) < 20  # every copy converged before the cap
+    at_bound = np.any(np.isclose(u_ipopt, sqp.info["u_low"]) | np.isclose(u_ipopt, sqp.info["u_high"]), axis=1)
+    assert at_bound.sum() >= count // 10
+
+
+@pytest.fixture(scope="module")
+def cartpole_episodes():
+    env = scg_jax.make("cartpole", episode_len_sec=3.0)
+    return env, env.default_params
+
+
+def test_sqp_rti_tracks_as_well_as_ipopt_on_the_same_episodes(cartpole_episodes):
+    # Float32 SQP-RTI against IPOPT on the same 4 seeded cart-pole stabilisation episodes (the benchmark also runs
+    # the 2D quadrotor's circle and the 3D quadrotor's stabilisation: ratios 0.9999 and 1.0002 there).
+    env, params = cartpole_episodes
+    key = jax.random.key(0)
+    ipopt = evaluate(env, params, make_nonlinear_mpc(env, params, {"horizon": 20}), key, 4, measure_time=False)
+    rti_controller = make_nonlinear_mpc(env, params, {"horizon": 20, "solver": "sqp_rti"})
+    rti = evaluate(env, params, rti_controller, key, 4, measure_time=False)
+    assert rti.summary["failure_rate"] == ipopt.summary["failure_rate"] == 0.0
+    assert rti.summary["rmse"] <= 1.05 * ipopt.summary["rmse"]
+    np.testing.assert_allclose(rti.trajectory["u_cmd"], ipopt.trajectory["u_cmd"], atol=2e-2)
+
+
+def test_sqp_rti_steps_never_retrace_and_repeat_exactly(cartpole_episodes):
+    env, params = cartpole_episodes
+    controller = make_nonlinear_mpc(env, params, {"horizon": 10, "solver": "sqp_rti"})
+    reference = Reference(*env.reference(params))
+    traces = []
+
+    def act(state, obs, step):
+        traces.append(1)
+        return controller.act(state, obs, step, reference)
+
+    act = jax.jit(act)
+
+    def run():
+        obs, env_state = env.reset(jax.random.key(3), params)
+        state, inputs = controller.reset(None, reference), []
+        for step in range(4):
+            u, state = act(state, obs, step)
+            out = env.step(env_state, u, params)
+            obs, env_state = out.obs, out.state
+            inputs.append(np.asarray(u))
+        return np.array(inputs), state
+
+    first, state = run()
+    second, _ = run()
+    np.testing.assert_array_equal(first, second)
+    assert len(traces) == 1
+    assert int(state.iterations) == 1 and int(state.plan_step) == 3  # one QP per step once a plan exists
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"solver": "acados"}, r"controllers\.nonlinear_mpc\.solver: .*ipopt, sqp, sqp_rti"),
+        ({"solver": "sqp", "sqp_max_iter": 0}, r"controllers\.nonlinear_mpc\.sqp_max_iter"),
+        ({"solver": "sqp", "qp_tol": -1.0}, r"controllers\.nonlinear_mpc\.qp_tol: must be >= 0"),
+    ],
+)
+def test_bad_solver_options_name_the_field(cartpole_episodes, options, message):
+    env, params = cartpole_episodes
+    with pytest.raises(ValueError, match=message):
+        make_nonlinear_mpc(env, params, options)

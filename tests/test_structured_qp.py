@@ -1,0 +1,259 @@
+"""The structured horizon-QP solver (``scg_algorithms.mpc.structured``) against closed forms and qpOASES: the LQR
+solution of an unconstrained LQ problem, a hand-solved KKT system with one active input bound, random time-varying
+QPs with state and general rows, soft rows, an infeasible problem's status, warm starts, determinism and no
+retracing."""
+
+import casadi as cs
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg
+
+from scg_algorithms.mpc import structured as S
+
+
+def _qp(layout, A, B, Q, R, P=None, K=None, u_box=np.inf, x_box=None, C=None, D=None, rows=None, c=None):
+    """A ``HorizonQP`` with the same matrices at every stage (``P`` the terminal weight, default ``Q``)."""
+    N, nx, nu, m = layout.horizon, layout.nx, layout.nu, layout.num_rows
+    rep = lambda a: np.repeat(np.asarray(a, float)[None], N, axis=0)  # noqa: E731
+    Qs = rep(Q)
+    Qs[-1] = Q if P is None else P
+    x_low, x_high = (np.zeros((N, 0)), np.zeros((N, 0))) if x_box is None else (rep(-x_box), rep(x_box))
+    return S.HorizonQP(
+        A=rep(A),
+        B=rep(B),
+        c=np.zeros((N, nx)) if c is None else c,
+        K=rep(np.zeros((nu, nx)) if K is None else K),
+        Q=Qs,
+        q=np.zeros((N, nx)),
+        R=rep(R),
+        r=np.zeros((N, nu)),
+        u_low=np.full((N, nu), -u_box),
+        u_high=np.full((N, nu), u_box),
+        x_low=x_low,
+        x_high=x_high,
+        C=rep(np.zeros((m, nx)) if C is None else C),
+        D=rep(np.zeros((m, nu)) if D is None else D),
+        row_low=np.full((N, m), -np.inf),
+        row_high=np.zeros((N, m)) if rows is None else rows,
+    )
+
+
+DOUBLE_INTEGRATOR = (np.array([[1.0, 0.1], [0.0, 1.0]]), np.array([[0.005], [0.1]]))
+
+
+@pytest.mark.parametrize("prestabilize", [False, True])
+def test_an_unconstrained_lq_problem_gives_the_lqr_plan(prestabilize):
+    # With the DARE solution as terminal weight the finite-horizon optimum is the LQR law at every stage.
+    A, B = DOUBLE_INTEGRATOR
+    Q, R = np.diag([1.0, 0.1]), np.array([[0.01]])
+    P = scipy.linalg.solve_discrete_are(A, B, Q, R)
+    K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+    layout = S.Layout(horizon=12, nx=2, nu=1)
+    qp = _qp(layout, A, B, Q, R, P=P, K=K if prestabilize else None, u_box=1e3)
+    x0 = np.array([1.0, -0.5])
+    with jax.enable_x64(True):
+        for sol in (
+            jax.jit(lambda x: S.solve(layout, qp, x))(jnp.asarray(x0)),
+            S.solve_prepared(layout, S.prepare(layout, qp), x0, qp.c, qp.q, qp.r, tuple(qp[8:12]) + tuple(qp[14:])),
+        ):
+            assert int(sol.status) == S.CONVERGED
+            x = x0
+            for k in range(layout.horizon):
+                np.testing.assert_allclose(sol.u[k], -K @ x, atol=1e-7)
+                x = A @ x + B @ sol.u[k]
+                np.testing.assert_allclose(sol.x[k + 1], x, atol=1e-9)
+
+
+def test_one_active_input_bound_matches_the_hand_solved_kkt_system():
+    # Horizon 2 on the double integrator from x0 = (1, 0): unconstrained, u = (-1.607, -0.297); with |u| <= 1
+    # only u_0 hits its bound. Then v = (u_0, u_1) solves [[H, e_0], [e_0^T, 0]] [v; lam] = [-g; -1] with H, g
+    # of the objective written out below: v = (-1, -0.3560), lam = -0.007367 (H v + g + lam e_0 = 0; negative:
+    # the lower bound pushes, the solver's sign convention for its multipliers).
+    A, B = DOUBLE_INTEGRATOR
+    Q, R = np.diag([1.0, 0.1]), np.array([[0.01]])
+    x0 = np.array([1.0, 0.0])
+    # x_1 = A x0 + B u0, x_2 = A^2 x0 + A B u0 + B u1; J = 1/2 (x1' Q x1 + x2' Q x2 + r u0^2 + r u1^2).
+    M1 = np.hstack([B, np.zeros((2, 1))])
+    M2 = np.hstack([A @ B, B])
+    H = M1.T @ Q @ M1 + M2.T @ Q @ M2 + 0.01 * np.eye(2)
+    g = M1.T @ Q @ (A @ x0) + M2.T @ Q @ (A @ A @ x0)
+    unconstrained = np.linalg.solve(H, -g)
+    assert unconstrained[0] < -1.0 < unconstrained[1]
+    kkt = np.block([[H, np.array([[1.0], [0.0]])], [np.array([[1.0, 0.0, 0.0]])]])
+    v_lam = np.linalg.solve(kkt, np.concatenate([-g, [-1.0]]))
+    np.testing.assert_allclose(v_lam, [-1.0, -0.35600907, -0.00736729], rtol=1e-6)
+    layout = S.Layout(horizon=2, nx=2, nu=1)
+    qp = _qp(layout, A, B, Q, R, u_box=1.0)
+    with jax.enable_x64(True):
+        sol = S.solve(layout, qp, jnp.asarray(x0))
+    assert int(sol.status) == S.CONVERGED
+    np.testing.assert_allclose(sol.u[:, 0], v_lam[:2], atol=1e-9)
+    np.testing.assert_allclose(sol.multipliers[0, 0], v_lam[2], rtol=1e-6)
+    np.testing.assert_allclose(sol.multipliers[1, 0], 0.0, atol=1e-9)
+
+
+def _qpoases(layout, qp, x0):
+    """qpOASES on the sparse form of ``qp`` (states and inputs as variables): ``(u_0, success)``."""
+    N, nx, nu = layout.horizon, layout.nx, layout.nu
+    opti = cs.Opti("conic")
+    X, U = opti.variable(nx, N + 1), opti.variable(nu, N)
+    opti.subject_to(X[:, 0] == x0)
+    cost = 0
+    for k in range(N):
+        opti.subject_to(X[:, k + 1] == qp.A[k] @ X[:, k] + qp.B[k] @ U[:, k] + qp.c[k])
+        opti.subject_to(opti.bounded(qp.u_low[k], U[:, k], qp.u_high[k]))
+        for j, i in enumerate(layout.x_rows):
+            opti.subject_to(opti.bounded(qp.x_low[k, j], X[i, k + 1], qp.x_high[k, j]))
+        if layout.num_rows:
+            opti.subject_to(qp.C[k] @ X[:, k + 1] + qp.D[k] @ U[:, k] <= qp.row_high[k])
+        cost += 0.5 * cs.bilin(qp.Q[k], X[:, k + 1]) + cs.dot(cs.DM(qp.q[k]), X[:, k + 1])
+        cost += 0.5 * cs.bilin(qp.R[k], U[:, k]) + cs.dot(cs.DM(qp.r[k]), U[:, k])
+    opti.minimize(cost)
+    opti.solver("qpoases", {"printLevel": "none", "error_on_fail": False})
+    try:
+        sol = opti.solve()
+    except RuntimeError:  # qpOASES reports infeasibility by failing
+        return None, False
+    return np.atleast_1d(sol.value(U[:, 0])), True
+
+
+def _random_time_varying(rng, N, nx, nu, m):
+    layout = S.Layout(horizon=N, nx=nx, nu=nu, x_rows=(0,), num_rows=m)
+    spd = lambda n: (lambda a: a @ a.T / n + np.eye(n))(rng.normal(size=(n, n)))  # noqa: E731
+    qp = S.HorizonQP(
+        A=np.eye(nx) + 0.1 * rng.normal(size=(N, nx, nx)),
+        B=0.3 * rng.normal(size=(N, nx, nu)),
+        c=0.05 * rng.normal(size=(N, nx)),
+        K=np.zeros((N, nu, nx)),
+        Q=np.stack([spd(nx) for _ in range(N)]),
+        q=rng.normal(size=(N, nx)),
+        R=np.stack([0.1 * spd(nu) for _ in range(N)]),
+        r=0.1 * rng.normal(size=(N, nu)),
+        u_low=np.full((N, nu), -1.0),
+        u_high=np.full((N, nu), 1.0),
+        x_low=np.full((N, 1), -0.5),
+        x_high=np.full((N, 1), 0.4),
+        C=rng.normal(size=(N, m, nx)),
+        D=rng.normal(size=(N, m, nu)),
+        row_low=np.full((N, m), -np.inf),
+        row_high=np.full((N, m), 2.0),
+    )
+    return layout, qp
+
+
+def test_random_time_varying_qps_with_state_and_general_rows_match_qpoases():
+    # Every matrix changes along the horizon (as SQP-RTI's linearisations do); float64, 16 problems batched.
+    rng = np.random.default_rng(0)
+    problems = [_random_time_varying(rng, 8, 3, 2, 2) for _ in range(16)]
+    layout = problems[0][0]
+    x0s = rng.uniform(-0.5, 0.5, (16, 3))
+    with jax.enable_x64(True):
+        batch = jax.tree.map(lambda *a: jnp.stack(a), *[qp for _, qp in problems])
+        settings = S.Settings(max_iterations=2000)
+        sols = jax.jit(jax.vmap(lambda qp, x: S.solve(layout, qp, x, None, settings)))(batch, jnp.asarray(x0s))
+    active = solved = 0
+    for i, (_, qp) in enumerate(problems):
+        u_ref, success = _qpoases(layout, qp, x0s[i])
+        if not success:  # a random problem may be infeasible: then the ADMM's plan must not pass as a solution
+            assert int(sols.status[i]) != S.CONVERGED and float(sols.violation[i]) > 1e-3
+            continue
+        solved += 1
+        assert int(sols.status[i]) == S.CONVERGED
+        np.testing.assert_allclose(sols.u[i, 0], u_ref, atol=1e-6)
+        plan = np.asarray(sols.x[i, 1:, 0])
+        active += int(np.any(np.isclose(plan, 0.4, atol=1e-6) | np.isclose(plan, -0.5, atol=1e-6)))
+    assert solved >= 10 and active >= 4  # the state rows bind in several of them
+
+
+def test_an_infeasible_problem_reports_its_status_and_a_finite_plan():
+    # x_1 = x_0 + u with |u| <= 1 cannot reach x_1 <= 0 from x_0 = 5.
+    layout = S.Layout(horizon=3, nx=1, nu=1, x_rows=(0,))
+    qp = _qp(layout, np.eye(1), np.eye(1), np.eye(1), np.eye(1), u_box=1.0)
+    qp = qp._replace(x_low=np.full((3, 1), -np.inf), x_high=np.zeros((3, 1)))
+    sol = jax.jit(lambda x: S.solve(layout, qp, x))(jnp.array([5.0]))
+    assert int(sol.status) == S.INFEASIBLE
+    assert S.STATUS_NAMES[int(sol.status)] == "infeasible"
+    for leaf in jax.tree.leaves(sol._replace(violation=0.0)):
+        assert np.all(np.isfinite(np.asarray(leaf)))
+    assert np.all(np.abs(sol.u) <= 1.0)
+    assert float(sol.violation) >= 2.0 - 1e-3  # x_1 >= 4 at best, x_3 >= 2: the plan misses the row by >= 2
+
+
+@pytest.mark.parametrize("slack", ["stage", "shared"])
+def test_a_soft_state_row_prices_its_violation(slack):
+    # The same problem with the row soft: u = -1 at every stage (each unit of x costs more than it saves),
+    # x = (4, 3, 2), and the slacks are the violations (stage) or their worst, 4 (shared).
+    layout = S.Layout(horizon=3, nx=1, nu=1, x_rows=(0,), soft_x=(True,), slack=slack, l1=10.0, l2=1.0)
+    qp = _qp(layout, np.eye(1), np.eye(1), np.eye(1), np.eye(1), u_box=1.0)
+    qp = qp._replace(x_low=np.full((3, 1), -np.inf), x_high=np.zeros((3, 1)))
+    with jax.enable_x64(True):
+        sol = S.solve(layout, qp, jnp.array([5.0]), None, S.Settings(max_iterations=2000))
+    assert int(sol.status) == S.CONVERGED
+    np.testing.assert_allclose(sol.u[:, 0], [-1.0, -1.0, -1.0], atol=1e-7)
+    np.testing.assert_allclose(sol.x[1:, 0], [4.0, 3.0, 2.0], atol=1e-7)
+    expected = [4.0, 3.0, 2.0] if slack == "stage" else [4.0, 4.0, 4.0]
+    np.testing.assert_allclose(sol.slack[:, 1], expected, atol=1e-5)  # soft rows keep the ADMM's accuracy
+
+
+@pytest.fixture(scope="module")
+def boxed_lq():
+    A, B = DOUBLE_INTEGRATOR
+    Q, R = np.diag([1.0, 0.1]), np.array([[0.01]])
+    P = scipy.linalg.solve_discrete_are(A, B, Q, R)
+    K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+    layout = S.Layout(horizon=20, nx=2, nu=1, x_rows=(1,))
+    qp = _qp(layout, A, B, Q, R, P=P, K=K, u_box=3.0, x_box=np.array([0.6]))
+    prepared = S.prepare(layout, qp)
+    bounds = tuple(qp[8:12]) + tuple(qp[14:])
+    traces = []
+
+    def solve(x, warm):
+        traces.append(1)
+        return S.solve_prepared(layout, prepared, x, qp.c, qp.q, qp.r, bounds, warm)
+
+    return layout, qp, jax.jit(solve), traces
+
+
+def test_a_shifted_warm_start_reaches_the_cold_plan_and_the_loop_never_retraces(boxed_lq):
+    # A closed loop on the plan's own model from a state that presses both the input and the velocity bound.
+    # (Warm starts do not save iterations on this problem: 30-50 either way at the default tolerances.)
+    layout, qp, solve, traces = boxed_lq
+    x = jnp.array([2.0, 0.0])
+    cold = solve(x, None)
+    np.testing.assert_allclose(cold.u[:2, 0], [-3.0, -3.0], atol=1e-5)
+    np.testing.assert_allclose(cold.x[2:5, 1], [-0.6, -0.6, -0.6], atol=1e-5)
+    warm = cold.warm
+    for _ in range(5):
+        x = jnp.asarray(qp.A[0]) @ x + jnp.asarray(qp.B[0]) @ cold.u[0]
+        cold_next = solve(x, S.Warm(*(jnp.zeros_like(a) for a in warm)))
+        warm_next = solve(x, S.shift(layout, warm))
+        assert int(cold_next.status) == int(warm_next.status) == S.CONVERGED
+        np.testing.assert_allclose(warm_next.u, cold_next.u, atol=5e-4)
+        cold, warm = warm_next, warm_next.warm
+    assert len(traces) == 2  # once without a warm start, once with one; never again
+
+
+def test_same_inputs_same_result_and_batched_equals_one_at_a_time(boxed_lq):
+    layout, qp, solve, _ = boxed_lq
+    xs = jnp.asarray(np.random.default_rng(1).uniform(-2.0, 2.0, (6, 2)), jnp.float32)
+    batched = jax.jit(jax.vmap(lambda x: solve(x, None)))
+    first, second = batched(xs), batched(xs)
+    for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(second), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    for i in range(xs.shape[0]):
+        np.testing.assert_allclose(first.u[i], solve(xs[i], None).u, atol=1e-4)
+
+
+def test_bad_layouts_and_settings_name_the_field():
+    with pytest.raises(ValueError, match=r"Layout\.x_rows"):
+        S.Layout(horizon=2, nx=2, nu=1, x_rows=(2,))
+    with pytest.raises(ValueError, match=r"Layout\.slack: unknown value 'per_row'; allowed values are stage, shared"):
+        S.Layout(horizon=2, nx=2, nu=1, slack="per_row")
+    with pytest.raises(ValueError, match=r"Settings\.alpha"):
+        S.Settings(alpha=2.0)
+    layout = S.Layout(horizon=2, nx=2, nu=1)
+    qp = _qp(layout, *DOUBLE_INTEGRATOR, np.eye(2), np.zeros((1, 1)))
+    with pytest.raises(ValueError, match=r"template\.R must be positive definite"):
+        S.prepare(layout, qp)
