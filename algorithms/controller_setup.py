@@ -37,6 +37,24 @@ TERMINAL_WEIGHTS = ("dare", "stage")
 DISCRETIZATIONS = ("env", "rk4")
 
 
+def discretization_option(default: str, model: str = "prediction model"):
+    """The shared declaration of a controller's or filter's ``discretization`` option (``DISCRETIZATIONS``)."""
+    return option(
+        default, f"{model}: the env's integrator and substeps (env), or one RK4 step per control period (rk4)",
+        choices=DISCRETIZATIONS,
+    )  # fmt: skip
+
+
+def terminal_weight_option():
+    """The shared declaration of an MPC's ``terminal_weight`` option (``TERMINAL_WEIGHTS``, see ``terminal_weight``)."""
+    return option(
+        "dare",
+        "terminal weight: dare (the LQR cost-to-go P, the discrete Riccati solution of the prior linearised about "
+        "the goal at the equilibrium input) or stage (the stage weight Q)",
+        choices=TERMINAL_WEIGHTS,
+    )
+
+
 @dataclasses.dataclass(frozen=True)
 class MPCOptions:
     """The first fields of every MPC's ``Options`` (``scg_algorithms.mpc.linear``, ``scg_algorithms.mpc.nonlinear``,

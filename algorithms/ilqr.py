@@ -434,8 +434,6 @@ def ilqr_solve(
 
 
 # --------------------------------------------------------------------------------------------- controller
-DISCRETIZATIONS = ("rk4", "env")
-TERMINAL_WEIGHTS = ("dare", "stage")
 WARM_STARTS = ("lqr", "open_loop")
 
 
@@ -447,18 +445,9 @@ class Options:
     max_iterations: int = option(3, "iLQR iterations per control step (warm-started from the shifted plan)")
     q_diag: tuple | None = option(None, "diagonal state weight (nx,); default: the prior's Q")
     r_diag: tuple | None = option(None, "diagonal input weight (nu,); default: the prior's R")
-    terminal_weight: str = option(
-        "dare",
-        "terminal weight: the infinite-horizon LQR cost-to-go P (discrete Riccati solution about the goal, "
-        "equilibrium input) or the stage weight Q (stage)",
-        choices=TERMINAL_WEIGHTS,
-    )
+    terminal_weight: str = setup.terminal_weight_option()
     terminal_scale: float = option(1.0, "factor on the terminal weight")
-    discretization: str = option(
-        "rk4",
-        "prediction model: one RK4 step over the control period, or the env's own integrator and substeps",
-        choices=DISCRETIZATIONS,
-    )
+    discretization: str = setup.discretization_option("rk4")
     input_constraints: str = option(
         "box",
         "input limits in the backward pass (box-DDP) or only by clipping the forward pass",

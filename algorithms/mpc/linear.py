@@ -69,8 +69,6 @@ from scg_algorithms.mpc import qp as qp_lib
 from scg_algorithms.mpc import structured
 
 LINEARIZE_ABOUT = setup.LINEARIZE_ABOUT
-TERMINAL_WEIGHTS = setup.TERMINAL_WEIGHTS
-DISCRETIZATIONS = setup.DISCRETIZATIONS
 CASADI_SOLVERS = ("qpoases", "osqp")
 SOLVERS = ("admm", "qpax")
 PATH = "controllers.linear_mpc"
@@ -81,22 +79,14 @@ CASADI_PATH = "controllers.linear_mpc_casadi"
 class Options(setup.MPCOptions):
     """Options of the linear MPC (``controllers.linear_mpc``; ``controllers.linear_mpc_casadi`` has the same fields)."""
 
-    terminal_weight: str = option(
-        "dare",
-        "terminal weight: the discrete Riccati solution P (LQR cost-to-go) or the stage weight Q",
-        choices=TERMINAL_WEIGHTS,
-    )
+    terminal_weight: str = setup.terminal_weight_option()
     linearize_about: str = option(
         "auto",
         "linearise about the goal (one model) or every reference point (one per step); auto: goal for "
         "stabilization, reference for tracking",
         choices=LINEARIZE_ABOUT,
     )
-    discretization: str = option(
-        "env",
-        "prediction model: the env's integrator and substeps, or one RK4 step per control period",
-        choices=DISCRETIZATIONS,
-    )
+    discretization: str = setup.discretization_option("env")
     env_constraints: bool = option(True, "impose the env's linear constraints (the actuator limits always hold)")
     soft_constraints: bool = option(False, "soften the constraint rows that involve the state with slacks >= 0")
     slack_per_stage: bool = option(
@@ -686,15 +676,7 @@ def make_linear_mpc_casadi(env, prior_params, options=None) -> LinearMPCCasadi:
             else:
                 opti.subject_to(values[index][row] <= 0)
     opti.minimize(cost)
-    if opts.casadi_solver == "qpoases":
-        solver_options = {"printLevel": "none", "error_on_fail": False, "expand": True}
-    else:
-        solver_options = {
-            "osqp": {"eps_abs": 1e-9, "eps_rel": 1e-9, "max_iter": 100000, "polish": True, "verbose": False},
-            "error_on_fail": False,
-            "expand": True,
-        }
-    opti.solver(opts.casadi_solver, solver_options)
+    opti.solver(opts.casadi_solver, {**qp_lib.casadi_qp_options(opts.casadi_solver, 1e-9), "expand": True})
     return LinearMPCCasadi(
         name="linear_mpc_casadi",
         problem=problem,

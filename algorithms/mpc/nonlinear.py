@@ -78,16 +78,8 @@ def _numpy(dm) -> np.ndarray:
 class Options(setup.MPCOptions):
     """Options of the nonlinear MPC (a config file's ``controllers.nonlinear_mpc`` section)."""
 
-    terminal_weight: str = option(
-        "dare",
-        "terminal weight: dare (Riccati solution of the prior linearised about the goal) or stage (Q)",
-        choices=("dare", "stage"),
-    )
-    discretization: str = option(
-        "rk4",
-        "prediction model: one RK4 step per control period (rk4) or the env's integrator and substeps (env, slower)",
-        choices=("rk4", "env"),
-    )
+    terminal_weight: str = setup.terminal_weight_option()
+    discretization: str = setup.discretization_option("rk4")
     soft_constraints: bool = option(False, "soften the env's constraints with slack variables >= 0")
     soft_penalty: float = option(1e3, "weight of the slack penalty sum(s + s^2) (soft_constraints)")
     constraint_margin: float = option(

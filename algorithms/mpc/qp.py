@@ -437,18 +437,20 @@ def solve_qp_casadi(hess, q, G, h, solver: str = "qpoases") -> tuple[np.ndarray,
     G = np.asarray(G, dtype=np.float64)
     H = cs.DM(0.5 * (hess + hess.T))
     A = cs.DM(G)
-    options = _conic_options(solver)
+    options = casadi_qp_options(solver)
     conic = cs.conic("ref", solver, {"h": H.sparsity(), "a": A.sparsity()}, options)
     out = conic(h=H, g=np.asarray(q, np.float64), a=A, lba=-np.inf, uba=np.asarray(h, np.float64))
     return np.asarray(out["x"]).ravel(), bool(conic.stats()["success"])
 
 
-def _conic_options(solver: str) -> dict:
+def casadi_qp_options(solver: str, tolerance: float = 1e-10) -> dict:
+    """CasADi's options for the QP solver ``solver``: qpOASES quiet, or OSQP at absolute and relative
+    ``tolerance`` with polishing; a failed solve is reported in the stats, never raised."""
     if solver == "qpoases":
         return {"printLevel": "none", "error_on_fail": False}
     if solver == "osqp":
         return {
-            "osqp": {"eps_abs": 1e-10, "eps_rel": 1e-10, "max_iter": 100000, "polish": True, "verbose": False},
+            "osqp": {"eps_abs": tolerance, "eps_rel": tolerance, "max_iter": 100000, "polish": True, "verbose": False},
             "error_on_fail": False,
         }
     raise ValueError(f"solver: unknown value {solver!r}; allowed values are qpoases, osqp")

@@ -97,9 +97,7 @@ class Options:
     )
     q_lqr: tuple | None = option(None, "diagonal state weight (nx,) of the ancillary LQR K; default: see backup")
     r_lqr: tuple | None = option(None, "diagonal input weight (nu,) of the ancillary LQR K; default: see backup")
-    discretization: str = option(
-        "env", "model: the env's integrator and substeps, or one RK4 step per period", choices=setup.DISCRETIZATIONS
-    )
+    discretization: str = setup.discretization_option("env", "model")
     tightening: str = option(
         "reachable",
         "constraint tightening: robust invariant ellipsoid (SDP), per-stage reachable tube, or none",
@@ -633,15 +631,7 @@ def make_linear_mpsc_casadi(env, prior_params, options=None, plant_params=None) 
         u_tail = u_bar - K @ (x_tail - x_bar)
         x_tail = A @ x_tail + B @ u_tail + c
         opti.subject_to(Ax @ x_tail + Au @ u_tail <= cs.DM(rows.b - problem.margins[j]))
-    if opts.casadi_solver == "qpoases":
-        solver_options = {"printLevel": "none", "error_on_fail": False, "expand": True}
-    else:
-        solver_options = {
-            "osqp": {"eps_abs": 1e-10, "eps_rel": 1e-10, "max_iter": 100000, "polish": True, "verbose": False},
-            "error_on_fail": False,
-            "expand": True,
-        }
-    opti.solver(opts.casadi_solver, solver_options)
+    opti.solver(opts.casadi_solver, {**qp_lib.casadi_qp_options(opts.casadi_solver, 1e-10), "expand": True})
     return LinearMPSCCasadi(
         name="linear_mpsc_casadi",
         system=problem.system,

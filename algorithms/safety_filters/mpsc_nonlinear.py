@@ -59,11 +59,7 @@ class Options:
     )
     q_lqr: tuple | None = option(None, "diagonal state weight (nx,) of the ancillary LQR K; default: see backup")
     r_lqr: tuple | None = option(None, "diagonal input weight (nu,) of the ancillary LQR K; default: see backup")
-    discretization: str = option(
-        "rk4",
-        "model: one RK4 step per period (the fork's default), or the env's integrator and substeps",
-        choices=setup.DISCRETIZATIONS,
-    )
+    discretization: str = setup.discretization_option("rk4", "model")
     tightening: str = option("reachable", "per-stage tightening from the model error, or none", choices=TIGHTENINGS)
     n_samples: int = option(600, "plant transitions sampled for the model-error bound")
     plant_draws: int = option(8, "plants drawn from the env's physics randomisation for the samples (1: nominal)")
