@@ -6,6 +6,7 @@ command's start to its end; Ctrl-C in ``compare`` and ``eval`` (status 130, one 
 from __future__ import annotations
 
 import io
+import os
 import re
 import signal
 import subprocess
@@ -86,6 +87,9 @@ class _Piped:
         self.process = subprocess.Popen(
             [str(Path(sys.prefix) / "bin" / "scg-jax"), *args],
             cwd=cwd,
+            # Compiled afresh, as a user's first run is: a persistent cache's executables would make XLA log a
+            # version-compatibility warning on stderr, which these tests require to be empty.
+            env={key: value for key, value in os.environ.items() if key != "JAX_COMPILATION_CACHE_DIR"},
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
