@@ -135,10 +135,11 @@ def gp_sqp_mpc_builder(env, prior_params, opts: Options):
 
     The host-side set-up is done here, once; the returned ``build(posterior) -> JaxController`` does none, so it may
     run inside ``jax.jit`` with the GP's arrays traced (``make_evaluator``): the GP is data of the compiled program,
-    not a constant of it. ``posterior=None``: the prior alone (margins from ``initial_std`` only).
+    not a constant of it. ``posterior``: a ``gp.GPPosterior`` (host arrays), a ``gp.SplitPosterior`` (what a jitted
+    caller passes: float64 values as float32 pairs; the GP is evaluated in float64) or ``None``: the prior alone
+    (margins from ``initial_std`` only).
     """
     from scg_algorithms.mpc.sqp import Prediction, sqp_mpc_builder
-    from scg_jax.backends import jax_backend
 
     nmpc = _nmpc_options(opts)
     nx, nu = env.nx, env.nu
@@ -148,25 +149,36 @@ def gp_sqp_mpc_builder(env, prior_params, opts: Options):
     z_q, sigma0 = tightening.quantile(opts.prob, nx), opts.initial_std**2 * np.eye(nx)
     build_sqp = sqp_mpc_builder(env, prior_params, nmpc, name="gp_mpc")
 
-    def build(posterior: gp.GPPosterior | None) -> JaxController:
+    def build(posterior: gp.GPPosterior | gp.SplitPosterior | None) -> JaxController:
+        if isinstance(posterior, gp.GPPosterior):
+            posterior = gp.split_posterior(posterior)
         if posterior is not None and (posterior.num_inputs != nx + nu or posterior.num_outputs != nx):
             raise ValueError(
                 f"gp: expected a GP from [x; u] ({nx + nu} inputs) to the state ({nx} outputs), got "
                 f"{posterior.num_inputs} inputs and {posterior.num_outputs} outputs"
             )
 
-        def error(x, u):
+        def mean(x, u):
             if posterior is None:
-                return jnp.zeros_like(x), jnp.zeros_like(x)
-            mean, var = gp.predict(posterior, jnp.concatenate([x, u]), jax_backend)
-            return mean.astype(x.dtype), var.astype(x.dtype)
+                return jnp.zeros_like(x)
+            # hi + lo: the float32 GP with x64 off, the float64 one with it on.
+            exact = jax.tree.map(lambda h, lo: h.astype(x.dtype) + lo.astype(x.dtype), posterior.hi, posterior.lo)
+            return gp.predict(exact, jnp.concatenate([x, u]))[0]
+
+        def variance(x, u):
+            if posterior is None:
+                return jnp.zeros_like(x)
+            # Float64 inside: the float32 variance of a GP pinned down by its data is mostly round-off (on the paper
+            # cart-pole's GP: errors of 1e-2 on variances of at most 5e-4), and the margins with it. The float32
+            # mean is good to 5e-5 of the largest target there.
+            return gp.predict_split(posterior, jnp.concatenate([x, u]))
 
         with_model = posterior is not None or opts.initial_std > 0
-        controller = build_sqp(Prediction(error, gain, z_q, sigma0) if with_model else None)
+        controller = build_sqp(Prediction(mean, variance, gain, z_q, sigma0) if with_model else None)
         info = {
             **controller.info,
             "prob": opts.prob,
-            "num_inducing": None if posterior is None else int(posterior.inputs.shape[0]),
+            "num_inducing": None if posterior is None else int(posterior.hi.inputs.shape[0]),
             "kernel": opts.kernel,
         }
         return dataclasses.replace(controller, info=info)
@@ -260,7 +272,7 @@ def learn(env, params, prior_params, options=None, progress: Callable[[dict], No
         if run_gp_mpc is None:
             run = evaluate(env, params, controller, eval_key, opts.eval_episodes, measure_time=True)
         else:
-            run = run_gp_mpc["eval"](posterior, eval_key, params)
+            run = run_gp_mpc["eval"](None if posterior is None else gp.split_posterior(posterior), eval_key, params)
         eval_s = time.perf_counter() - start
         entry = {
             "round": round_index,
@@ -287,7 +299,7 @@ def learn(env, params, prior_params, options=None, progress: Callable[[dict], No
         if run_gp_mpc is None or round_index == 0:
             collected = evaluate(env, params, collector, collect_key, opts.train_episodes, measure_time=False)
         else:
-            collected = run_gp_mpc["collect"](posterior, collect_key, params)
+            collected = run_gp_mpc["collect"](gp.split_posterior(posterior), collect_key, params)
         z, e = data.model_error(fd_prior, *data.transitions(collected.trajectory))
         inputs, targets = np.concatenate([inputs, z]), np.concatenate([targets, e])
         start = time.perf_counter()

@@ -57,15 +57,16 @@ class Prediction(NamedTuple):
     """A learned correction of the prior's step and the constraint tightening its uncertainty brings (GP-MPC).
 
     Attributes:
-        error: ``error(x (nx,), u (nu,)) -> (mean (nx,), var (nx,))``: the mean of the prior's one-step error, added
-            to ``f_d``, and its variance per state entry; it may close over traced arrays (a GP's data), so one
-            compiled program serves every GP of the same shape.
+        mean: ``mean(x (nx,), u (nu,)) -> (nx,)``, the mean of the prior's one-step error, added to ``f_d``.
+        variance: ``variance(x, u) -> (nx,)``, its variance per state entry. Both may close over traced arrays (a
+            GP's data), so one compiled program serves every GP of the same shape.
         K: (nu, nx) the ancillary gain of the covariance propagation (``δu = -K δx``).
         z_q: the chance-constraint quantile (``scg_algorithms.gp_mpc.tightening.quantile``).
         sigma0: (nx, nx) covariance of the initial state.
     """
 
-    error: Any
+    mean: Any
+    variance: Any
     K: Any
     z_q: Any
     sigma0: Any
@@ -212,7 +213,7 @@ def sqp_mpc_builder(env, prior_params, opts, name: str = "nonlinear_mpc"):
 
     def build(prediction: Prediction | None) -> JaxController:
         def step_fn(x, u):
-            return prior_step(x, u) if prediction is None else prior_step(x, u) + prediction.error(x, u)[0]
+            return prior_step(x, u) if prediction is None else prior_step(x, u) + prediction.mean(x, u)
 
         rti = opts.solver == "sqp_rti"
         max_iter = opts.sqp_max_iter
@@ -224,7 +225,7 @@ def sqp_mpc_builder(env, prior_params, opts, name: str = "nonlinear_mpc"):
             from scg_algorithms.gp_mpc import tightening
 
             A, B = jax.vmap(jax.jacfwd(step_fn, argnums=(0, 1)))(x_plan[:-1], u_plan)
-            var = jnp.maximum(jax.vmap(lambda x, u: prediction.error(x, u)[1])(x_plan[:-1], u_plan), 0.0)
+            var = jnp.maximum(jax.vmap(prediction.variance)(x_plan[:-1], u_plan), 0.0)
             sigmas = tightening.propagate_covariance_scan(A, B, prediction.K, var, prediction.sigma0)
             rows_x, rows_u = jax.vmap(jax.jacfwd(g_all, argnums=(0, 1)))(x_plan[1:], u_plan)
             return tightening.margins(rows_x, rows_u, sigmas, prediction.K, prediction.z_q, xp=jnp).astype(dtype)
