@@ -29,6 +29,11 @@ merit_weight``), or by the smallest when none does.
   Without a plan (the first step) it iterates as ``sqp`` does, from the measured state held and the equilibrium
   input.
 
+**A learned model** (GP-MPC, ``scg_algorithms.gp_mpc``): ``Prediction`` adds a model error's mean to ``f_d`` and
+tightens every env constraint row at every stage by a margin from its variance, propagated along the plan about to be
+linearised (the CasADi GP-MPC's ``tightening``, in JAX). ``sqp_mpc_builder`` does the host-side set-up once, so the
+controller can be built inside ``jax.jit`` from a traced model (one compile per GP size).
+
 **Failure**: a QP that is infeasible, non-finite, or whose plan violates a hard row by more than
 ``fallback_tol`` moves nothing; when the very first iteration fails, the input is the shifted previous plan's
 (or the equilibrium input without one), clipped to the box. ``SQPState.num_failures`` counts those steps.
