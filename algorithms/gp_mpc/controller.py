@@ -147,7 +147,7 @@ def gp_sqp_mpc_builder(env, prior_params, opts: Options):
     Q, R = setup.cost_weights(env, prior_params, opts.q_diag, opts.r_diag, PATH, positive_definite_r=False)
     gain = _ancillary_gain(env, prior_params, model, Q, R)
     z_q, sigma0 = tightening.quantile(opts.prob, nx), opts.initial_std**2 * np.eye(nx)
-    build_sqp = sqp_mpc_builder(env, prior_params, nmpc, name="gp_mpc")
+    build_sqp = sqp_mpc_builder(env, prior_params, nmpc, name="gp_mpc", adaptive_rho=True)
 
     def build(posterior: gp.GPPosterior | gp.SplitPosterior | None) -> JaxController:
         if isinstance(posterior, gp.GPPosterior):
