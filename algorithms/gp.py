@@ -189,14 +189,6 @@ class SplitPosterior:
     hi: GPPosterior
     lo: GPPosterior
 
-    @property
-    def num_outputs(self) -> int:
-        return self.hi.num_outputs
-
-    @property
-    def num_inputs(self) -> int:
-        return self.hi.num_inputs
-
 
 def split_posterior(posterior: GPPosterior) -> SplitPosterior:
     """The ``SplitPosterior`` of a posterior with host (numpy) arrays; ``hi + lo`` equals it to about 1e-14."""

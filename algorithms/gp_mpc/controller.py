@@ -152,10 +152,10 @@ def gp_sqp_mpc_builder(env, prior_params, opts: Options):
     def build(posterior: gp.GPPosterior | gp.SplitPosterior | None) -> JaxController:
         if isinstance(posterior, gp.GPPosterior):
             posterior = gp.split_posterior(posterior)
-        if posterior is not None and (posterior.num_inputs != nx + nu or posterior.num_outputs != nx):
+        if posterior is not None and (posterior.hi.num_inputs != nx + nu or posterior.hi.num_outputs != nx):
             raise ValueError(
                 f"gp: expected a GP from [x; u] ({nx + nu} inputs) to the state ({nx} outputs), got "
-                f"{posterior.num_inputs} inputs and {posterior.num_outputs} outputs"
+                f"{posterior.hi.num_inputs} inputs and {posterior.hi.num_outputs} outputs"
             )
 
         def mean(x, u):
