@@ -72,7 +72,7 @@ CONFIGS = {
     "cartpole": ROOT / "configs" / "paper_cartpole_lqr_mpc.yaml",
     "quadrotor_2d": ROOT / "configs" / "paper_quadrotor_2d.yaml",
 }
-# The original suite's IPOPT MPC, ms per control step (figures quoted in the issue; for scale only).
+# The original suite's IPOPT MPC, ms per control step, as reported for it (machine unknown; for scale only).
 ORIGINAL_NMPC_MS = {"cartpole": 6.0, "quadrotor_2d": 11.0}
 DEFAULT_MARKDOWN = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "control.md"
 DEFAULT_JSON = Path(__file__).resolve().parent / "results" / "control.json"
@@ -589,7 +589,7 @@ def print_report(console: Console, rows: list[dict], meta: dict) -> None:
             "fallbacks); reference = the Opti formulation of the original suite (set_value, set_initial, solve, "
             "read-back), built in this run with the same model, weights and constraints; ours / reference = ratio "
             "of the act and reference medians. Warm steps only (step 0 of each episode is cold on both sides). "
-            "original = the original suite's figure as quoted in the issue (machine unknown), for scale.\n"
+            "original = the original suite's figure as reported for it (machine unknown), for scale.\n"
         )
     linear = [r for r in rows if "linear" in r]
     if linear:
@@ -649,7 +649,7 @@ def main(argv=None) -> int:
         },
         "reference": {
             "original_nmpc_ms_per_step": ORIGINAL_NMPC_MS,
-            "description": "original safe-control-gym IPOPT MPC per control step, as quoted in the issue",
+            "description": "original safe-control-gym IPOPT MPC per control step, as reported for it",
         },
     }
     print_machine(console, meta)
