@@ -18,7 +18,9 @@ Two measurements, each against a baseline measured in the same run:
 3. **Run split** (``--split``): where the wall time of one whole training run at the config's settings goes:
    collection (env and policy, ``Learner.collect``), update (losses, gradients, optimiser) and everything else
    (host syncs, logging, checkpoints, final files: the run's wall time beyond its iterations' compute), with
-   compilation reported apart.
+   compilation reported apart. The run's saved policy is then evaluated against LQR: this is the check that the
+   config's *default* budget learns (no crash and an RMSE within ``DEFAULT_BUDGET_RMSE_FACTOR`` (4) times LQR's
+   on ``--eval-episodes`` episodes, for PPO and SAC); tests/test_learning.py checks learning at a small budget only.
 
 The env and the hyperparameters are those of the config (default ``configs/cartpole_stabilization.yaml``, its
 ``training.ppo`` section). Results go to ``benchmarks/results/train.json``.
@@ -138,7 +140,12 @@ def throughput(env, params, cfg, algo: str, batch: int, iterations: int, repeats
     }
 
 
-def run_split(env, params, cfg, algo: str, repeats: int) -> dict:
+# A whole run at the config's default budget has learned when its deterministic policy never crashes and its RMSE is
+# within this times LQR's (true model) on the same episodes; the untrained policy falls or drifts to over 10x.
+DEFAULT_BUDGET_RMSE_FACTOR = 4.0
+
+
+def run_split(env, params, cfg, algo: str, repeats: int, episodes: int = 32) -> dict:
     """Where the wall time of one whole training run goes, at the config's own settings (copies, budget).
 
     One iteration is timed in two parts: the data collection alone (``Learner.collect``: the env and the acting
@@ -148,15 +155,23 @@ def run_split(env, params, cfg, algo: str, repeats: int) -> dict:
     the learning curve), and what its wall time (compile excluded) holds beyond its iterations' compute is
     "everything else": host syncs, logging, checkpoints and the final files. SAC's warm-up iterations (random
     actions, no gradient step) count as collection only.
+
+    The saved policy is evaluated on ``episodes`` episodes (key 123) next to LQR on the same ones: ``learned`` says
+    whether the default budget learned (no crash, whole episodes, RMSE within ``DEFAULT_BUDGET_RMSE_FACTOR`` x LQR's).
     """
     import tempfile
 
+    from scg_algorithms.rl.policy import load_policy
     from scg_algorithms.rl.training import run_training
 
     config = _config(cfg, algo)
     learner = algorithm_module(algo, "make_learner")(config, env)
+    eval_key = jax.random.key(123)
     with tempfile.TemporaryDirectory(prefix="scg-jax-train-split-") as out_dir:
         result = run_training(learner, env, params, jax.random.key(0), out_dir)
+        final = evaluate(env, params, load_policy(out_dir, env, params), eval_key, episodes, measure_time=False)
+    lqr = evaluate(env, params, make_lqr(env, params), eval_key, episodes, measure_time=False).summary
+    final = final.summary
     # The parts, timed from a state past SAC's warm-up; iterations chained so that a timed call lasts about 0.5 s
     # (one iteration of a small config is milliseconds: alone, its time would be the machine's noise).
     state = learner.init(jax.random.key(0), params)
@@ -185,6 +200,13 @@ def run_split(env, params, cfg, algo: str, repeats: int) -> dict:
         "other_share": (run_s - compute_s) / run_s,
         "run_s": run_s,
         "compile_s": float(result["compile_time_s"]),
+        "final_rmse_over_lqr": float(final["rmse"] / lqr["rmse"]),
+        "final_crash_rate": float(final["crash_rate"]),
+        "learned": bool(
+            final["crash_rate"] == 0.0
+            and final["length"] == env.num_steps
+            and final["rmse"] < DEFAULT_BUDGET_RMSE_FACTOR * lqr["rmse"]
+        ),
     }
 
 
@@ -382,10 +404,12 @@ def main(argv=None) -> int:
         splits = []
         for algo in args.algos:
             console.print(f"run split: {algo}, a whole run at the config's settings")
-            splits.append(run_split(env, params, cfg, algo, args.repeats))
+            splits.append(run_split(env, params, cfg, algo, args.repeats, args.eval_episodes))
         record["run_split"] = splits
         table = Table(title="where a training run's wall time goes (compile apart)")
-        for column in ("algo", "copies", "iterations", "collection", "update", "everything else", "run s", "compile s"):
+        columns = ("algo", "copies", "iterations", "collection", "update", "everything else", "run s", "compile s",
+                   "RMSE / LQR", "learned")  # fmt: skip
+        for column in columns:
             table.add_column(column, justify="right")
         for row in splits:
             table.add_row(
@@ -397,6 +421,8 @@ def main(argv=None) -> int:
                 f"{row['other_share']:.0%}",
                 f"{row['run_s']:.1f}",
                 f"{row['compile_s']:.1f}",
+                f"{row['final_rmse_over_lqr']:.2f}",
+                str(row["learned"]),
             )
         console.print(table)
 
@@ -446,7 +472,9 @@ def main(argv=None) -> int:
         notes.append(
             f"- a whole {row['algo']} run ({row['copies']:,} copies, {row['iterations']} iterations, "
             f"{row['run_s']:.1f} s + {row['compile_s']:.1f} s compile): collection {row['collect_share']:.0%}, "
-            f"update {row['update_share']:.0%}, everything else {row['other_share']:.0%}"
+            f"update {row['update_share']:.0%}, everything else {row['other_share']:.0%}; final policy "
+            f"{row['final_rmse_over_lqr']:.2f}x LQR's RMSE, crash rate {row['final_crash_rate']:.0%} "
+            f"({'learned' if row['learned'] else 'NOT learned'} within the default budget)"
         )
     if "brax_over_ours" in threshold:
         notes.append(f"- brax / ours: {threshold['brax_over_ours']:.2f}")

@@ -310,7 +310,11 @@ def _learns(name, train, **options):
 
 
 def _agent(name):
-    """brax's ``train`` of the agent and the options it learns the cart-pole with (small networks, short runs)."""
+    """brax's ``train`` of the agent and the options it learns the cart-pole with (small networks, short runs).
+
+    At these budgets (seed 0): SAC's evaluated reward goes 11.4 -> 44.0 -> 72.3 and its cost 23.6 -> 14.4 -> 0 (the
+    test asks for a rise of 40 to above 60; 12 k steps before). PPO keeps its 100 k steps: at 50 k its reward
+    reaches 63.6 but its cost rises (20.2 -> 26.5)."""
     if name == "ppo":
         from brax.training.agents.ppo import networks, train
 
@@ -326,7 +330,7 @@ def _agent(name):
 
         networks = functools.partial(networks.make_sac_networks, hidden_layer_sizes=(32, 32))
         options = dict(
-            num_timesteps=12_000, num_envs=16, batch_size=256, grad_updates_per_step=16, min_replay_size=1000,
+            num_timesteps=6_000, num_envs=16, batch_size=256, grad_updates_per_step=16, min_replay_size=1000,
             max_replay_size=100_000, learning_rate=3e-3, discounting=0.97, tau=0.05,
         )  # fmt: skip
     return train.train, {**options, "network_factory": networks}
