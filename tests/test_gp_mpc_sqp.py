@@ -45,9 +45,27 @@ def _posterior(scale: float, signal_var: float, seed: int = 0) -> gp.GPPosterior
 STATES = np.array([[0.2, 0.0, 0.1, 0.0], [-0.4, 0.3, -0.2, 0.5], [0.0, -0.5, 0.3, -0.2]])
 
 
-def test_a_zero_gp_gives_the_nonlinear_sqp_rti(setting):
+@pytest.fixture(scope="module")
+def gp_programs(setting):
+    """``(first_input, batched)``: the GP-MPC's first step from one state, and vmapped over states, jitted with the
+    (split) GP an argument, so every GP of the same size (the zero GP included) runs the same two executables."""
+    env, _, prior, reference = setting
+    build = gp_sqp_mpc_builder(env, prior, Options(**OPTIONS, solver="sqp_rti"))
+
+    @jax.jit
+    def first_input(posterior, x):
+        """The first step's input from x, the GP an argument of the compiled function."""
+        controller = build(posterior)
+        u, state = controller.act(controller.reset(None, reference), x, 0, reference)
+        return u, state.num_failures
+
+    return first_input, jax.jit(jax.vmap(first_input.__wrapped__, in_axes=(None, 0)))
+
+
+def test_a_zero_gp_gives_the_nonlinear_sqp_rti(setting, gp_programs):
     # Zero mean and a signal variance of 1e-16 (margins below 1e-5): the same first input as the nonlinear MPC's
-    # SQP-RTI on the prior, at three states (the SQP's first step iterates to convergence).
+    # SQP-RTI on the prior, at three states (the SQP's first step iterates to convergence). The GP-MPC runs through
+    # the module's compiled program (the GP an argument; ``make_gp_mpc`` builds the same controller from it).
     env, _, prior, reference = setting
     zero = _posterior(0.0, 1e-16)
     gp_mpc = make_gp_mpc(env, prior, {**OPTIONS, "solver": "sqp_rti"}, zero)
@@ -55,11 +73,10 @@ def test_a_zero_gp_gives_the_nonlinear_sqp_rti(setting):
     margins = gp_mpc.info["plan_margins"](jnp.tile(jnp.asarray(STATES[0]), (H + 1, 1)), jnp.zeros((H, 1)))
     assert 0.0 < float(jnp.max(margins)) < 1e-5
 
-    def first_inputs(controller):
-        act = jax.vmap(lambda x: controller.act(controller.reset(None, reference), x, 0, reference)[0])
-        return np.asarray(jax.jit(act)(jnp.asarray(STATES, jnp.float32)))
-
-    np.testing.assert_allclose(first_inputs(gp_mpc), first_inputs(nmpc), atol=1e-4)
+    states = jnp.asarray(STATES, jnp.float32)
+    u_gp = np.asarray(gp_programs[1](gp.split_posterior(zero), states)[0])
+    act = jax.vmap(lambda x: nmpc.act(nmpc.reset(None, reference), x, 0, reference)[0])
+    np.testing.assert_allclose(u_gp, np.asarray(jax.jit(act)(states)), atol=1e-4)
 
 
 def test_margins_equal_the_casadi_gp_mpc_tightening(setting):
@@ -78,18 +95,8 @@ def test_margins_equal_the_casadi_gp_mpc_tightening(setting):
     np.testing.assert_allclose(margins, expected, rtol=1e-7, atol=1e-10)
 
 
-def test_batched_equals_one_at_a_time_and_a_new_gp_compiles_nothing(setting):
-    env, _, prior, reference = setting
-    build = gp_sqp_mpc_builder(env, prior, Options(**OPTIONS, solver="sqp_rti"))
-
-    @jax.jit
-    def first_input(posterior, x):
-        """The first step's input from x, the GP an argument of the compiled function."""
-        controller = build(posterior)
-        u, state = controller.act(controller.reset(None, reference), x, 0, reference)
-        return u, state.num_failures
-
-    batched = jax.jit(jax.vmap(first_input.__wrapped__, in_axes=(None, 0)))
+def test_batched_equals_one_at_a_time_and_a_new_gp_compiles_nothing(gp_programs):
+    first_input, batched = gp_programs
     first, second = gp.split_posterior(_posterior(0.05, 1e-3)), gp.split_posterior(_posterior(0.08, 2e-3, seed=3))
     states = jnp.asarray(STATES, jnp.float32)
     u_batch, failures = batched(first, states)
@@ -98,5 +105,5 @@ def test_batched_equals_one_at_a_time_and_a_new_gp_compiles_nothing(setting):
     np.testing.assert_allclose(np.asarray(u_batch), u_single, atol=5e-4)
     assert np.all(np.asarray(failures) == 0)
     u_other = np.asarray(batched(second, states)[0])  # another GP of the same size: the same executable
-    assert batched._cache_size() == 1 and first_input._cache_size() == 1
+    assert batched._cache_size() == 1 and first_input._cache_size() == 1  # the zero GP's run too, if it came first
     assert np.max(np.abs(u_other - np.asarray(u_batch))) > 1e-2  # and it does change the inputs

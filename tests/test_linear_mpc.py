@@ -278,11 +278,12 @@ def test_without_active_constraints_the_first_input_is_the_lqr_input(cartpole):
 
 def test_an_infeasible_qp_falls_back_to_the_clipped_lqr_input(cartpole):
     # The cart 1 m beyond its 0.3 m bound: no plan meets the hard row at the next state, so the input is LQR's,
-    # clipped to the 2 N box.
+    # clipped to the 2 N box. (The first-input test's controller and argument types: the same program, which the
+    # run's compilation cache then holds.)
     env, params, reference = cartpole
-    mpc = make_linear_mpc(env, params, {"horizon": 10})
+    mpc = make_linear_mpc(env, params, {"horizon": 20})
     x = np.array([1.3, 0.0, 0.0, 0.0])
-    u, status = jax.jit(mpc.act)(mpc.reset(None, reference), jnp.asarray(x, jnp.float32), 0, reference)
+    u, status = jax.jit(mpc.act)(mpc.reset(None, reference), jnp.asarray(x, jnp.float32), np.int64(0), reference)
     assert int(status.status) == structured.INFEASIBLE
     K = make_lqr(env, params).info["K"][0]
     np.testing.assert_allclose(u, np.clip(-K @ x, -2.0, 2.0), rtol=1e-6)
