@@ -8,9 +8,10 @@ test or process) is loaded instead of compiled again. It is removed when the run
 
 Most tests run a compiled program for a fraction of a second after compiling it for several, so XLA compiles them
 with most optimisations off (``jax_disable_most_optimizations``: LLVM's backend optimisation level 0, the same HLO
-program): about 30% less compile time, the same operations. A test that runs long enough for the optimised
-program to pay off (a learning test) is marked ``optimized``. The setting is chosen per test, before its fixtures
-are built; the CLI subprocesses a test starts inherit it through ``JAX_DISABLE_MOST_OPTIMIZATIONS``.
+program): about 30% less compile time, the same operations (rounded in another order). A test whose outcome that
+rounding can steer (a learning test at a small budget) is marked ``optimized``. The setting is chosen per test,
+before its fixtures are built; the CLI subprocesses a test starts inherit it through
+``JAX_DISABLE_MOST_OPTIMIZATIONS``.
 ``SCG_TEST_OPTIMIZE=1`` compiles every test fully optimised, as users' programs are.
 """
 

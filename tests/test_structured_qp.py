@@ -246,8 +246,10 @@ def test_same_inputs_same_result_and_batched_equals_one_at_a_time(boxed_lq):
     first, second = batched(xs), batched(xs)
     for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(second), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # vmap changes no arithmetic, only the order XLA's vector instructions round in: the plans agree to the solver's
+    # float32 resolution (its polish accepts 3e-4 of a row's half-width, here 3 N; measured up to 1.6e-4 N).
     for i in range(xs.shape[0]):
-        np.testing.assert_allclose(first.u[i], solve(xs[i], None).u, atol=1e-4)
+        np.testing.assert_allclose(first.u[i], solve(xs[i], None).u, atol=1e-3)
 
 
 def test_bad_layouts_and_settings_name_the_field():
