@@ -10,8 +10,10 @@ Most tests run a compiled program for a fraction of a second after compiling it 
 with most optimisations off (``jax_disable_most_optimizations``: LLVM's backend optimisation level 0, the same HLO
 program): about 30% less compile time, the same operations (rounded in another order). A test whose outcome that
 rounding can steer (a learning test at a small budget) is marked ``optimized``. The setting is chosen per test,
-before its fixtures are built; the CLI subprocesses a test starts inherit it through
-``JAX_DISABLE_MOST_OPTIMIZATIONS``.
+before its fixtures are built, and applies to what is compiled from then on: an executable that the process already
+holds (a jitted function called again with the same shapes) runs as it was compiled, so an ``optimized`` test builds
+the programs it depends on itself. The persistent cache keys its entries by the setting, and the CLI subprocesses a
+test starts inherit it through ``JAX_DISABLE_MOST_OPTIMIZATIONS``.
 ``SCG_TEST_OPTIMIZE=1`` compiles every test fully optimised, as users' programs are.
 """
 
