@@ -211,19 +211,21 @@ def test_run_training_equals_make_train_and_the_saved_policy_acts_alike(cartpole
 
 
 # --------------------------------------------------------------------------------------------- learning
-LEARNING_BUDGET = {"total_env_steps": 10_000, "num_envs": 16, "utd": 1, "warmup_steps": 2_000, "exploration_noise": 0.3}
+# tau = 0.02 rather than the default 0.005: at 10 k transitions the targets must keep up with the critics. TD3 moves
+# its targets only at every second critic update and bootstraps from the smaller of two critics; with tau = 0.005
+# all of 4 seeds still crash every episode at 10 k (each of the twin critics, the smoothing and the delay alone
+# slows it; docs/learning.md has the curves). With 0.02, over the 4 seeds jax.random.split(key(0), 4): no crash
+# from 8 k on for TD3 (6 k for DDPG) and at 10 k an RMSE of 1.4-3.8x LQR's (TD3) and 1.8-4.0x (DDPG), against the
+# bound of 10x; the test's seed key(0) ends at 1.6x (TD3) and 2.2x (DDPG).
+LEARNING_BUDGET = {
+    "total_env_steps": 10_000, "num_envs": 16, "utd": 1, "warmup_steps": 2_000, "exploration_noise": 0.3, "tau": 0.02
+}  # fmt: skip
 LEARNING_EPISODES, RMSE_FACTOR = 32, 10.0
 
 
-# TD3 at its defaults does not learn this task at this budget (all of 4 seeds crash every episode after 10 k
-# transitions, as when it was added; 1 of 4 holds the pole after 20 k): an open item of the learners issue (28), not
-# a test to run for nothing in every CI run.
-TD3_DOES_NOT_LEARN_YET = pytest.mark.skip(reason="TD3 does not learn the cart-pole within 10 k transitions (issue 28)")
-
-
 @pytest.mark.slow
-@pytest.mark.optimized  # 1 of 16 episodes crashed when compiled without optimisations: rounding steers the training
-@pytest.mark.parametrize("algo", [ddpg, pytest.param(td3, marks=TD3_DOES_NOT_LEARN_YET)], ids=["ddpg", "td3"])
+@pytest.mark.optimized  # (at tau 0.005) 1 of 16 episodes crashed compiled without optimisations: rounding steers it
+@pytest.mark.parametrize("algo", [ddpg, td3], ids=["ddpg", "td3"])
 def test_learns_to_hold_the_cart_pole_up_within_ten_thousand_steps(algo):
     """From a policy that crashes in most episodes to one that never crashes, within 10x LQR's RMSE (the zero input
     crashes every episode at 42x), from 10 k transitions (8 k gradient steps) on 16 copies."""
