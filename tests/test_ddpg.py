@@ -12,7 +12,7 @@ import pytest
 import scg_algorithms.ddpg as ddpg
 from scg_algorithms.ddpg import Config, losses, td3
 from scg_algorithms.ddpg.train import LOSS_METRICS, _algorithm, _summarize, make_networks
-from scg_algorithms.evaluation import evaluate
+from scg_algorithms.evaluation import evaluate, make_evaluator
 from scg_algorithms.lqr import make_lqr
 from scg_algorithms.rl.counter import count_value
 from scg_algorithms.rl.normalization import init_stats
@@ -223,25 +223,34 @@ LEARNING_BUDGET = {
 LEARNING_EPISODES, RMSE_FACTOR = 32, 10.0
 
 
+@pytest.fixture(scope="module")
+def learning_task():
+    """The cart-pole of the learning test, its evaluation key and LQR's RMSE there (shared by DDPG and TD3)."""
+    env, params = make_from_config(load_config("configs/cartpole_stabilization.yaml"))
+    key = jax.random.key(123)
+    lqr = evaluate(env, params, make_lqr(env, params), key, LEARNING_EPISODES, measure_time=False).summary
+    return env, params, key, lqr["rmse"]
+
+
 @pytest.mark.slow
 @pytest.mark.optimized  # (at tau 0.005) 1 of 16 episodes crashed compiled without optimisations: rounding steers it
 @pytest.mark.parametrize("algo", [ddpg, td3], ids=["ddpg", "td3"])
-def test_learns_to_hold_the_cart_pole_up_within_ten_thousand_steps(algo):
+def test_learns_to_hold_the_cart_pole_up_within_ten_thousand_steps(algo, learning_task):
     """From a policy that crashes in most episodes to one that never crashes, within 10x LQR's RMSE (the zero input
     crashes every episode at 42x), from 10 k transitions (8 k gradient steps) on 16 copies."""
-    cfg = load_config("configs/cartpole_stabilization.yaml")
-    env, params = make_from_config(cfg)
-    key = jax.random.key(123)
-    lqr = evaluate(env, params, make_lqr(env, params), key, LEARNING_EPISODES, measure_time=False).summary
+    env, params, key, lqr_rmse = learning_task
     learner = algo.make_learner(LEARNING_BUDGET, env)
+    # One compiled evaluation for the untrained and the trained policy (the same keys per copy as ``evaluate``).
+    evaluate_policy = make_evaluator(
+        env, lambda policy_params: policy_controller(env, params, learner, policy_params), LEARNING_EPISODES
+    )
 
     def summary(runner_state):
-        controller = policy_controller(env, params, learner, learner.policy_params(runner_state))
-        return evaluate(env, params, controller, key, LEARNING_EPISODES, measure_time=False).summary
+        return evaluate_policy(learner.policy_params(runner_state), key, params).summary
 
     untrained = summary(jax.jit(learner.init)(jax.random.key(0), params))
     runner_state, _ = jax.jit(algo.make_train(LEARNING_BUDGET, env))(jax.random.key(0), params)
     trained = summary(runner_state)
-    assert untrained["crash_rate"] > 0.5 or untrained["rmse"] > 3 * RMSE_FACTOR * lqr["rmse"]
+    assert untrained["crash_rate"] > 0.5 or untrained["rmse"] > 3 * RMSE_FACTOR * lqr_rmse
     assert trained["crash_rate"] == 0.0 and trained["length"] == env.num_steps
-    assert trained["rmse"] < RMSE_FACTOR * lqr["rmse"]
+    assert trained["rmse"] < RMSE_FACTOR * lqr_rmse
