@@ -325,6 +325,7 @@ def _sac_agent():
 
 
 @pytest.mark.slow
+@pytest.mark.optimized  # a long training run: 35 CPU s compiled optimised (level 1), 41 s unoptimised
 @_IGNORE_REPLICATED
 def test_brax_sac_learns_cartpole_stabilization():
     """brax's SAC learns on the adapter. That brax's PPO learns (100 k steps; at 50 k its cost rose, 20.2 -> 26.5) is

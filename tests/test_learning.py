@@ -44,8 +44,10 @@ def _policy_summary(env, params, learner, runner_state):
     return evaluate(env, params, controller, jax.random.key(123), EPISODES, measure_time=False).summary
 
 
+# SAC's run takes 16 k gradient steps: compiled optimised (level 1) it costs 32 CPU s instead of 52; PPO's 128
+# iterations cost less unoptimised (31 CPU s against 38).
 @pytest.mark.slow
-@pytest.mark.parametrize("algo", ["ppo", "sac"])
+@pytest.mark.parametrize("algo", ["ppo", pytest.param("sac", marks=pytest.mark.optimized)])
 def test_learns_cartpole_stabilization_within_a_small_budget(cartpole, algo):
     cfg, env, params, lqr = cartpole
     options = {**cfg.training[algo], **BUDGETS[algo]}
