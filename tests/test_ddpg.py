@@ -12,7 +12,7 @@ import pytest
 import scg_algorithms.ddpg as ddpg
 from scg_algorithms.ddpg import Config, losses, td3
 from scg_algorithms.ddpg.train import LOSS_METRICS, _algorithm, _summarize, make_networks
-from scg_algorithms.evaluation import evaluate
+from scg_algorithms.evaluation import evaluate, make_evaluator
 from scg_algorithms.lqr import make_lqr
 from scg_algorithms.rl.counter import count_value
 from scg_algorithms.rl.normalization import init_stats
@@ -211,35 +211,46 @@ def test_run_training_equals_make_train_and_the_saved_policy_acts_alike(cartpole
 
 
 # --------------------------------------------------------------------------------------------- learning
-LEARNING_BUDGET = {"total_env_steps": 10_000, "num_envs": 16, "utd": 1, "warmup_steps": 2_000, "exploration_noise": 0.3}
+# tau = 0.02 rather than the default 0.005: at 10 k transitions the targets must keep up with the critics. TD3 moves
+# its targets only at every second critic update and bootstraps from the smaller of two critics; with tau = 0.005
+# all of 4 seeds still crash every episode at 10 k (each of the twin critics, the smoothing and the delay alone
+# slows it; docs/learning.md has the curves). With 0.02, over the 4 seeds jax.random.split(key(0), 4): no crash
+# from 8 k on for TD3 (6 k for DDPG) and at 10 k an RMSE of 1.4-3.8x LQR's (TD3) and 1.8-4.0x (DDPG), against the
+# bound of 10x; the test's seed key(0) ends at 1.6x (TD3) and 2.2x (DDPG).
+LEARNING_BUDGET = {
+    "total_env_steps": 10_000, "num_envs": 16, "utd": 1, "warmup_steps": 2_000, "exploration_noise": 0.3, "tau": 0.02
+}  # fmt: skip
 LEARNING_EPISODES, RMSE_FACTOR = 32, 10.0
 
 
-# TD3 at its defaults does not learn this task at this budget (all of 4 seeds crash every episode after 10 k
-# transitions, as when it was added; 1 of 4 holds the pole after 20 k): an open item of the learners issue (28), not
-# a test to run for nothing in every CI run.
-TD3_DOES_NOT_LEARN_YET = pytest.mark.skip(reason="TD3 does not learn the cart-pole within 10 k transitions (issue 28)")
+@pytest.fixture(scope="module")
+def learning_task():
+    """The cart-pole of the learning test, its evaluation key and LQR's RMSE there (shared by DDPG and TD3)."""
+    env, params = make_from_config(load_config("configs/cartpole_stabilization.yaml"))
+    key = jax.random.key(123)
+    lqr = evaluate(env, params, make_lqr(env, params), key, LEARNING_EPISODES, measure_time=False).summary
+    return env, params, key, lqr["rmse"]
 
 
 @pytest.mark.slow
-@pytest.mark.optimized  # 1 of 16 episodes crashed when compiled without optimisations: rounding steers the training
-@pytest.mark.parametrize("algo", [ddpg, pytest.param(td3, marks=TD3_DOES_NOT_LEARN_YET)], ids=["ddpg", "td3"])
-def test_learns_to_hold_the_cart_pole_up_within_ten_thousand_steps(algo):
+@pytest.mark.optimized  # 8 k gradient steps: optimised (level 1) they cost less than their longer compile
+@pytest.mark.parametrize("algo", [ddpg, td3], ids=["ddpg", "td3"])
+def test_learns_to_hold_the_cart_pole_up_within_ten_thousand_steps(algo, learning_task):
     """From a policy that crashes in most episodes to one that never crashes, within 10x LQR's RMSE (the zero input
     crashes every episode at 42x), from 10 k transitions (8 k gradient steps) on 16 copies."""
-    cfg = load_config("configs/cartpole_stabilization.yaml")
-    env, params = make_from_config(cfg)
-    key = jax.random.key(123)
-    lqr = evaluate(env, params, make_lqr(env, params), key, LEARNING_EPISODES, measure_time=False).summary
+    env, params, key, lqr_rmse = learning_task
     learner = algo.make_learner(LEARNING_BUDGET, env)
+    # One compiled evaluation for the untrained and the trained policy (the same keys per copy as ``evaluate``).
+    evaluate_policy = make_evaluator(
+        env, lambda policy_params: policy_controller(env, params, learner, policy_params), LEARNING_EPISODES
+    )
 
     def summary(runner_state):
-        controller = policy_controller(env, params, learner, learner.policy_params(runner_state))
-        return evaluate(env, params, controller, key, LEARNING_EPISODES, measure_time=False).summary
+        return evaluate_policy(learner.policy_params(runner_state), key, params).summary
 
     untrained = summary(jax.jit(learner.init)(jax.random.key(0), params))
     runner_state, _ = jax.jit(algo.make_train(LEARNING_BUDGET, env))(jax.random.key(0), params)
     trained = summary(runner_state)
-    assert untrained["crash_rate"] > 0.5 or untrained["rmse"] > 3 * RMSE_FACTOR * lqr["rmse"]
+    assert untrained["crash_rate"] > 0.5 or untrained["rmse"] > 3 * RMSE_FACTOR * lqr_rmse
     assert trained["crash_rate"] == 0.0 and trained["length"] == env.num_steps
-    assert trained["rmse"] < RMSE_FACTOR * lqr["rmse"]
+    assert trained["rmse"] < RMSE_FACTOR * lqr_rmse
