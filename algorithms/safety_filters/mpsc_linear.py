@@ -92,7 +92,7 @@ QPAX_OBJECTIVE_SCALE = 1e3  # the objective's factor in the qpax solve (see cert
 class Options:
     """Options of the linear MPSC (``safety_filters.linear_mpsc``)."""
 
-    horizon: int = option(20, "prediction horizon H, control steps (the plan's free inputs)")
+    horizon: int = option(25, "prediction horizon H, control steps (the plan's free inputs)")
     terminal_horizon: float = option(
         2.0, "seconds the plan's tail follows the ancillary LQR inside the tightened rows (the terminal set); 0: none"
     )
