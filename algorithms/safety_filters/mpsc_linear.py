@@ -129,8 +129,8 @@ class Options:
         "shared-factorisation ADMM of mpsc_admm, or qpax's interior point",
         choices=SOLVERS,
     )
-    structured_max_iter: int = option(200, "structured: ADMM iterations at most per step (a copy stops when converged)")
-    structured_tol: float = option(1e-4, "structured: absolute and relative residual tolerance of the scaled QP")
+    structured_max_iter: int = option(1000, "structured: ADMM iterations at most per step (stops once converged)")
+    structured_tol: float = option(1e-5, "structured: absolute and relative residual tolerance of the scaled QP")
     structured_check_every: int = option(10, "structured: iterations between residual checks and step-size updates")
     structured_polish_rounds: int = option(3, "structured: active-set polish rounds after the ADMM (0: none)")
     terminal_rows: int = option(
@@ -168,9 +168,8 @@ class Options:
         if self.error_quantile is not None and not 0.0 < self.error_quantile <= 1.0:
             raise ValueError(f"{path}.error_quantile: must be in (0, 1], got {self.error_quantile!r}")
         positive(f"{path}.regularization", self.regularization)
-        positive(f"{path}.violation_penalty", self.violation_penalty)
         nonnegative = ("constraint_margin", "terminal_horizon", "structured_tol", "structured_polish_rounds")
-        for name in (*nonnegative, "terminal_rows"):
+        for name in (*nonnegative, "terminal_rows", "violation_penalty"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
 

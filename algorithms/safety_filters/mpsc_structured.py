@@ -110,11 +110,8 @@ def terminal_rows(problem, box: tuple[np.ndarray, np.ndarray], count: int) -> tu
             result = linprog(-F[i], A_ub=F[kept], b_ub=high[kept], bounds=bounds, method="highs")
         else:
             result = linprog(-F[i], bounds=bounds, method="highs")
-        if result.status == 2:
-            raise ValueError(
-                "safety_filters.linear_mpsc.terminal_horizon: the tightened rows of the ancillary LQR's tail admit no "
-                "state; shorten terminal_horizon or lower the tightening"
-            )
+        if result.status == 2:  # the kept rows and the box admit no state: every plan fails the full check anyway
+            break
         if not (result.status == 0 and -result.fun <= high[i] + REDUNDANCY_TOL):
             kept.append(int(i))
     return F[kept], high[kept]
@@ -171,16 +168,18 @@ def build(problem) -> StructuredMPSC:
         C = np.concatenate([C, C_term], axis=1)
         D = np.concatenate([D, np.zeros((H, F.shape[0], nu))], axis=1)
         row_high = np.concatenate([row_high, term_high], axis=1)
-    # Every row on the state is soft at the exact-penalty price violation_penalty: where a plan holds every row the
-    # solution is that of the hard QP (the price exceeds every multiplier), elsewhere the least-violating plan.
+    # Every row on the state is soft at the exact-penalty price violation_penalty (0: hard rows): where a plan holds
+    # every row the solution is that of the hard QP (the price exceeds every multiplier), elsewhere the
+    # least-violating plan.
+    soft = opts.violation_penalty > 0
     layout = structured.Layout(
         horizon=H,
         nx=nx,
         nu=nu,
         x_rows=x_rows,
         num_rows=C.shape[1],
-        soft_x=(True,) * len(x_rows),
-        soft_rows=tuple(bool(np.any(C[:, i])) for i in range(C.shape[1])),
+        soft_x=(soft,) * len(x_rows),
+        soft_rows=tuple(soft and bool(np.any(C[:, i])) for i in range(C.shape[1])),
         l1=opts.violation_penalty,
     )
     settings = structured.Settings(
