@@ -4,8 +4,10 @@ proposed input that keeps a plan back into safety, on the linearised prior with 
 Two filters share one ``Options`` (``safety_filters.linear_mpsc``; the CasADi variant reads the same fields):
 
 - ``make_linear_mpsc`` (``"linear_mpsc"``): a JAX ``Filter``; ``certify`` is pure JAX of one copy, so the harness
-  vmaps it over thousands of copies. Its QP is solved by an ADMM with one factorisation shared by the batch
-  (``solver="admm"``, ``mpsc_admm``) or by qpax's interior point (``solver="qpax"``, per-copy factorisation).
+  vmaps it over thousands of copies inside its jitted loop. Its QP is solved by the structured horizon-QP solver
+  (``solver="structured"``, the default: ``scg_algorithms.mpc.structured``, prepared once by ``mpsc_structured``,
+  warm-started from the shifted previous solution, polished), by a fixed-iteration ADMM with one factorisation
+  shared by the batch (``solver="admm"``, ``mpsc_admm``) or by qpax's interior point (``solver="qpax"``).
 - ``make_linear_mpsc_casadi``: the same QP for one copy on the host, formulated independently with
   ``casadi.Opti("conic")`` and qpOASES (or OSQP): the reference the tests hold the batched filter to.
 
@@ -32,17 +34,23 @@ Online, per copy (observation ``x``, proposed input ``u_L``), the condensed QP o
     min_v  1/2 |u_0 - u_L|^2 + 1/2 regularization |v_{1:}|^2
     s.t.   x_0 = x,  x_{j+1} = Ad x_j + Bd u_j + c,  rows(x_{j+1}, u_j) <= b - margin_j   (j = 0..H-1)
 
-``regularization`` (default 1e-4) makes the Hessian definite (the one-step cost alone is singular in ``v_1..``); it
-leaves ``v_0`` alone, so it does not bias the certified input.
+The second term is in general ``1/2 sum_{j>=1} v_j^T W v_j``, ``W`` the ancillary LQR's ``R + B^T P B`` scaled to
+the largest eigenvalue ``regularization`` (``mpsc_structured.plan_weight``; with one input, ``regularization``
+itself). It makes the Hessian definite (the one-step cost alone is singular in ``v_1..``); it leaves ``v_0`` alone,
+so it does not bias the certified input.
 With ``x_0 = x`` the tube starts at zero error, so the constant RPI margin is conservative at early stages (the
 design choice "(a)" of the research notes: the original's tube-initial-state freedom is dropped so the problem
 stays a QP).
 
-Fallback (the original's Algorithm 1): the filter state keeps the last feasible plan ``v`` and the steps since
-(``kinf``). When the QP is infeasible (ADMM: ``max(G z - h) > feasibility_tol`` after its iterations; qpax: its
-status), the input is ``u_eq - K (x - x_goal) + v_prev[kinf]`` (the previous plan continued with the tube
-feedback; in this parametrisation the tube controller ``v_j - K (x - z_j)`` reduces to that), and after ``H``
-such steps the plain LQR. The input is finally clipped to the actuator box. ``info.feasible`` is False on a
+Certification: every solver's plan ``v`` is checked on every row of the horizon and the tail (``max(G v - h) <=
+feasibility_tol``; qpax also by its status). Fallback (the original's Algorithm 1): the filter state keeps the last
+certified plan ``v`` and the steps since (``kinf``). When no plan is certified, the input is ``u_eq - K (x - x_goal) +
+v_prev[kinf]`` (the previous plan continued with the tube feedback; in this parametrisation the tube controller
+``v_j - K (x - z_j)`` reduces to that), and after ``H`` such steps, with no certified plan left, the first input of
+the least-violating plan (structured solver: its state rows are soft at the exact-penalty price
+``violation_penalty``; the cart-pole within +-0.1 m has a start from which no plan holds the bound for the horizon
+and tail) or the plain LQR (the other solvers, or ``violation_penalty=0``). The input is finally clipped to the
+actuator box. ``info.feasible`` is False on a
 fallback step, ``info.slack`` is 0 (hard constraints).
 
 Pass-through: where ``u_L`` is the first input of a feasible plan the QP's optimum is ``u_L`` itself (cost 0 up to
