@@ -174,6 +174,53 @@ def to_numpy(posterior: GPPosterior) -> GPPosterior:
     return jax.tree.map(lambda a: np.asarray(a, dtype=np.float64), posterior)
 
 
+@struct.dataclass
+class SplitPosterior:
+    """A float64 ``GPPosterior`` carried through a float32 program: each leaf as ``hi + lo``, two float32 arrays
+    (``hi`` the value rounded to float32, ``lo`` the remainder). A jitted function that takes a GP as an argument
+    would round it to float32, and ``s - kᵀ V k`` then loses every digit (``V`` has entries of 1e6 and more when
+    inducing points are close); ``predict_split`` rebuilds the float64 values and computes the variance in float64
+    inside. ``hi`` alone is the float32 GP (its mean is accurate in float32).
+
+    Attributes:
+        hi, lo: ``GPPosterior`` with float32 leaves (``split_posterior``).
+    """
+
+    hi: GPPosterior
+    lo: GPPosterior
+
+
+def split_posterior(posterior: GPPosterior) -> SplitPosterior:
+    """The ``SplitPosterior`` of a posterior with host (numpy) arrays; ``hi + lo`` equals it to about 1e-14."""
+    exact = to_numpy(posterior)
+    hi = jax.tree.map(lambda a: a.astype(np.float32), exact)
+    lo = jax.tree.map(lambda a, h: (a - h.astype(np.float64)).astype(np.float32), exact, hi)
+    return SplitPosterior(hi, lo)
+
+
+def predict_split(split: SplitPosterior, z):
+    """The posterior's latent variance at ``z`` in float64 from a ``SplitPosterior`` (jit- and vmap-able), even with
+    x64 off.
+
+    Elementwise operations and sums only, and the distances as differences: under ``vmap`` of a ``lax.scan`` the
+    batching of its body happens after the ``enable_x64`` scope is left, and ``dot_general``'s batching rule then
+    mixes float32 and float64.
+
+    Args:
+        split: the GP. z: (d,) JAX array, float32 or float64.
+
+    Returns:
+        var (m,) in ``z``'s dtype.
+    """
+    with jax.enable_x64(True):
+        post = jax.tree.map(lambda h, lo: h.astype(jnp.float64) + lo.astype(jnp.float64), split.hi, split.lo)
+        hp = post.hyperparams
+        scaled = (z.astype(jnp.float64)[None, None, :] - post.inputs[None]) / hp.length_scales[:, None, :]  # (m, M, d)
+        k = _kernel_of_sq_dist(jnp.sum(scaled * scaled, -1), hp.signal_var[:, None], post.kernel, jax_backend)
+        var = hp.signal_var - jnp.sum(k * jnp.sum(post.var_matrix * k[:, None, :], -1), -1)
+    return var.astype(z.dtype)
+
+
 def casadi_function(posterior: GPPosterior, name: str = "gp"):
     """``casadi.Function(name, [z (d, 1)], [mean (m, 1), var (m, 1)])`` of the posterior."""
     import casadi as cs

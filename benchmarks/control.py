@@ -61,6 +61,7 @@ from throughput import measure_pair  # benchmarks/throughput.py: compile, calibr
 import scg_jax
 from scg_algorithms.base import Reference
 from scg_algorithms.evaluation import evaluate
+from scg_algorithms.mpc.cases import CASES, make_case_env, random_states
 from scg_algorithms.mpc.linear import make_linear_mpc, make_linear_mpc_casadi
 from scg_algorithms.mpc.nonlinear import make_nonlinear_mpc
 from scg_jax.config import load_config, make_from_config
@@ -71,7 +72,7 @@ CONFIGS = {
     "cartpole": ROOT / "configs" / "paper_cartpole_lqr_mpc.yaml",
     "quadrotor_2d": ROOT / "configs" / "paper_quadrotor_2d.yaml",
 }
-# The original suite's IPOPT MPC, ms per control step (figures quoted in the issue; for scale only).
+# The original suite's IPOPT MPC, ms per control step, as reported for it (machine unknown; for scale only).
 ORIGINAL_NMPC_MS = {"cartpole": 6.0, "quadrotor_2d": 11.0}
 DEFAULT_MARKDOWN = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "control.md"
 DEFAULT_JSON = Path(__file__).resolve().parent / "results" / "control.json"
@@ -80,47 +81,6 @@ QUICK_DEFAULTS = {"episodes": 1, "batch": 256, "repeats": 2, "min_time": 0.05}
 
 
 SOLVERS_MARKDOWN = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "mpc_solvers.md"
-# The solvers part: per system, make() arguments, the state constraints added in the "state" variant, the random
-# states (offset and half-widths around a reference point; the linear MPC parity tests' sets) and the closed-loop
-# task of SQP-RTI against IPOPT.
-_INPUT = [{"type": "default", "on": "input"}]
-SOLVER_CASES = {
-    "cartpole": (
-        {"system": "cartpole"},
-        [{"type": "bounded", "on": "state", "active_dims": [0], "low": [-0.3], "high": [0.3]}],
-        0.0,
-        [0.25, 0.5, 0.3, 0.5],
-    ),
-    "quadrotor_1d": (
-        {"system": "quadrotor_1d", "goal": [1.8, 0.0]},
-        [{"type": "bounded", "on": "state", "active_dims": [0], "low": [-10.0], "high": [1.5]}],
-        [-0.6, 0.0],
-        [0.3, 1.0],
-    ),
-    "quadrotor_2d": (
-        {"system": "quadrotor_2d", "task": "tracking"},
-        [
-            {"type": "default", "on": "state"},
-            {"type": "bounded", "on": "state", "active_dims": [0, 2], "low": [-0.52, 0.48], "high": [0.52, 1.52]},
-        ],
-        0.0,
-        [0.1, 0.3, 0.1, 0.3, 0.3, 0.5],
-    ),
-    "quadrotor_3d": (
-        {"system": "quadrotor_3d", "goal": [0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0]},
-        [
-            {
-                "type": "bounded",
-                "on": "state",
-                "active_dims": [0, 2, 4],
-                "low": [-0.3, -0.3, 0.7],
-                "high": [0.3, 0.3, 1.3],
-            }
-        ],
-        0.0,
-        [0.3, 0.5] * 3 + [0.2] * 3 + [0.5] * 3,
-    ),
-}
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -132,9 +92,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument(
         "--parts", nargs="+", default=["nonlinear", "linear"], choices=["nonlinear", "linear", "solvers"]
     )
-    parser.add_argument(
-        "--solver-systems", nargs="+", default=list(SOLVER_CASES), choices=list(SOLVER_CASES), help="solvers part"
-    )
+    parser.add_argument("--solver-systems", nargs="+", default=list(CASES), choices=list(CASES), help="solvers part")
     parser.add_argument("--batches", nargs="+", type=int, default=[1, 1024, 4096], help="solvers part: copies")
     parser.add_argument("--parity-states", type=int, default=1000, help="solvers part: states compared to qpOASES")
     parser.add_argument("--rti-episodes", type=int, default=2, help="solvers part: episodes of SQP-RTI and IPOPT")
@@ -407,24 +365,10 @@ def _per_call(fn, args, repeats: int, min_time: float) -> float:
     return float(np.median(runs))
 
 
-def _solver_env(name: str, with_state: bool):
-    kwargs, state_rows, offset, spread = SOLVER_CASES[name]
-    kwargs = dict(kwargs)
-    env = scg_jax.make(kwargs.pop("system"), constraints=_INPUT + (state_rows if with_state else []), **kwargs)
-    return env, env.default_params, np.asarray(offset, dtype=np.float64), np.asarray(spread, dtype=np.float64)
-
-
-def _random_states(env, reference, offset, spread, count, seed):
-    rng = np.random.default_rng(seed)
-    n = reference.x_ref.shape[0]
-    steps = rng.integers(0, n - 1, count) if env.task == "tracking" else np.zeros(count, int)
-    return steps, reference.x_ref[steps] + offset + rng.uniform(-1.0, 1.0, (count, env.nx)) * spread
-
-
 def measure_qp_solvers(name: str, with_state: bool, args) -> dict:
     """QPs/s of linear MPC with admm and qpax at each batch, CasADi qpOASES and OSQP one at a time, the env's
     steps/s at each batch, and admm's largest first-input difference from qpOASES over ``parity_states`` states."""
-    env, params, offset, spread = _solver_env(name, with_state)
+    env, params = make_case_env(name, with_state)
     reference = Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
     reference32 = Reference(*(jnp.asarray(a) for a in reference))
     options = {"horizon": args.horizon}
@@ -435,7 +379,7 @@ def measure_qp_solvers(name: str, with_state: bool, args) -> dict:
     controllers["admm_fixed"] = make_linear_mpc(env, params, {**options, **fixed})
     row = {"system": name, "constraints": "input and state" if with_state else "input", "batches": {}}
     count = args.parity_states
-    steps, states = _random_states(env, reference, offset, spread, count, args.seed)
+    steps, states = random_states(env, reference, CASES[name].offset, CASES[name].spread, count, args.seed)
     # Parity: one vmapped admm call against qpOASES one state at a time.
     casadi = {s: make_linear_mpc_casadi(env, params, {**options, "casadi_solver": s}) for s in ("qpoases", "osqp")}
     u_jax = {}
@@ -645,7 +589,7 @@ def print_report(console: Console, rows: list[dict], meta: dict) -> None:
             "fallbacks); reference = the Opti formulation of the original suite (set_value, set_initial, solve, "
             "read-back), built in this run with the same model, weights and constraints; ours / reference = ratio "
             "of the act and reference medians. Warm steps only (step 0 of each episode is cold on both sides). "
-            "original = the original suite's figure as quoted in the issue (machine unknown), for scale.\n"
+            "original = the original suite's figure as reported for it (machine unknown), for scale.\n"
         )
     linear = [r for r in rows if "linear" in r]
     if linear:
@@ -705,7 +649,7 @@ def main(argv=None) -> int:
         },
         "reference": {
             "original_nmpc_ms_per_step": ORIGINAL_NMPC_MS,
-            "description": "original safe-control-gym IPOPT MPC per control step, as quoted in the issue",
+            "description": "original safe-control-gym IPOPT MPC per control step, as reported for it",
         },
     }
     print_machine(console, meta)

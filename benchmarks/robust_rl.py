@@ -20,7 +20,7 @@ an action-channel white noise. Each sweep is ONE vmapped evaluation with batched
 - input noise std ``sigma`` (N) in {0, 0.5, 1, 2, 4}, nominal length 0.5 m.
 
 RMSE is the harness's per-episode RMSE (``sqrt`` of the mean ``mse_weight``-weighted squared state error), averaged
-over episodes and seeds. The issue's targets (printed, never an error exit): PPO^DR's RMSE averaged over
+over episodes and seeds. The targets (printed, never an error exit): PPO^DR's RMSE averaged over
 l in {0.75, 1.25, 1.65} <= 0.7x PPO's; RAP's RMSE at sigma = 2 N <= 0.8x PPO's; RAP and RARL at nominal
 (l = 0.5, sigma = 0) within 1.2x of PPO's. Training env steps/s of each learner is reported as a ratio to PPO's in
 the same run (compile excluded).

@@ -15,6 +15,13 @@ Two measurements, each against a baseline measured in the same run:
    networks, evaluated in its ``policy_params_fn`` callback at ``--brax-evals`` points. The ratio brax / ours of
    time to threshold is printed (> 1: ours is faster).
 
+3. **Run split** (``--split``): where the wall time of one whole training run at the config's settings goes:
+   collection (env and policy, ``Learner.collect``), update (losses, gradients, optimiser) and everything else
+   (host syncs, logging, checkpoints, final files: the run's wall time beyond its iterations' compute), with
+   compilation reported apart. The run's saved policy is then evaluated against LQR: this is the check that the
+   config's *default* budget learns (no crash and an RMSE within ``DEFAULT_BUDGET_RMSE_FACTOR`` (4) times LQR's
+   on ``--eval-episodes`` episodes, for PPO and SAC); tests/test_learning.py checks learning at a small budget only.
+
 The env and the hyperparameters are those of the config (default ``configs/cartpole_stabilization.yaml``, its
 ``training.ppo`` section). Results go to ``benchmarks/results/train.json``.
 
@@ -130,6 +137,76 @@ def throughput(env, params, cfg, algo: str, batch: int, iterations: int, repeats
         "train_steps_per_s": train_rate,
         "env_steps_per_s": env_rate,
         "train_over_env": train_rate / env_rate,
+    }
+
+
+# A whole run at the config's default budget has learned when its deterministic policy never crashes and its RMSE is
+# within this times LQR's (true model) on the same episodes; the untrained policy falls or drifts to over 10x.
+DEFAULT_BUDGET_RMSE_FACTOR = 4.0
+
+
+def run_split(env, params, cfg, algo: str, repeats: int, episodes: int = 32) -> dict:
+    """Where the wall time of one whole training run goes, at the config's own settings (copies, budget).
+
+    One iteration is timed in two parts: the data collection alone (``Learner.collect``: the env and the acting
+    policy) and the rest of the iteration, the update (losses, gradients, optimiser; GAE and replay for the
+    learners that have them), both jitted and compile excluded. Then the whole run is trained by
+    ``scg_algorithms.rl.training.run_training`` (chunks of iterations, CSV rows, checkpoints, the policy file and
+    the learning curve), and what its wall time (compile excluded) holds beyond its iterations' compute is
+    "everything else": host syncs, logging, checkpoints and the final files. SAC's warm-up iterations (random
+    actions, no gradient step) count as collection only.
+
+    The saved policy is evaluated on ``episodes`` episodes (key 123) next to LQR on the same ones: ``learned`` says
+    whether the default budget learned (no crash, whole episodes, RMSE within ``DEFAULT_BUDGET_RMSE_FACTOR`` x LQR's).
+    """
+    import tempfile
+
+    from scg_algorithms.rl.policy import load_policy
+    from scg_algorithms.rl.training import run_training
+
+    config = _config(cfg, algo)
+    learner = algorithm_module(algo, "make_learner")(config, env)
+    eval_key = jax.random.key(123)
+    with tempfile.TemporaryDirectory(prefix="scg-jax-train-split-") as out_dir:
+        result = run_training(learner, env, params, jax.random.key(0), out_dir)
+        final = evaluate(env, params, load_policy(out_dir, env, params), eval_key, episodes, measure_time=False)
+    lqr = evaluate(env, params, make_lqr(env, params), eval_key, episodes, measure_time=False).summary
+    final = final.summary
+    # The parts, timed from a state past SAC's warm-up; iterations chained so that a timed call lasts about 0.5 s
+    # (one iteration of a small config is milliseconds: alone, its time would be the machine's noise).
+    state = learner.init(jax.random.key(0), params)
+    update = jax.jit(learner.update)
+    warmup = int(getattr(config, "warmup_iterations", 0))
+    for _ in range(max(1, warmup)):
+        state, _ = update(state, params)
+    chained = max(1, round(0.5 * result["iterations"] / max(result["train_time_s"], 1e-9)))
+    chain = _update_runner(learner, chained)
+    iteration_s = median_seconds(lambda: chain(state, params), repeats) / chained
+    collect = jax.jit(learner.collect)
+    # Not clipped at iteration_s: a collection timed longer than the whole iteration shows the machine's noise.
+    collect_s = median_seconds(lambda: collect(state, params), 3 * repeats)
+    iterations = int(result["iterations"])
+    learning = iterations - min(warmup, iterations)
+    compute_s = learning * iteration_s + (iterations - learning) * collect_s
+    run_s = float(result["train_time_s"])
+    return {
+        "algo": algo,
+        "copies": int(config.num_envs),
+        "iterations": iterations,
+        "collect_s_per_iteration": collect_s,
+        "update_s_per_iteration": iteration_s - collect_s,
+        "collect_share": iterations * collect_s / run_s,
+        "update_share": learning * (iteration_s - collect_s) / run_s,
+        "other_share": (run_s - compute_s) / run_s,
+        "run_s": run_s,
+        "compile_s": float(result["compile_time_s"]),
+        "final_rmse_over_lqr": float(final["rmse"] / lqr["rmse"]),
+        "final_crash_rate": float(final["crash_rate"]),
+        "learned": bool(
+            final["crash_rate"] == 0.0
+            and final["length"] == env.num_steps
+            and final["rmse"] < DEFAULT_BUDGET_RMSE_FACTOR * lqr["rmse"]
+        ),
     }
 
 
@@ -270,6 +347,9 @@ def main(argv=None) -> int:
     parser.add_argument("--algos", nargs="+", default=["ppo", "sac"], choices=["ppo", "sac"], help="throughput")
     parser.add_argument("--iterations", type=int, default=4, help="iterations per timed throughput call")
     parser.add_argument("--repeats", type=int, default=3, help="timed throughput calls (median)")
+    parser.add_argument(
+        "--split", action=argparse.BooleanOptionalAction, default=True, help="where a whole run's time goes"
+    )
     parser.add_argument("--threshold", action=argparse.BooleanOptionalAction, default=True, help="time to threshold")
     parser.add_argument("--brax", action=argparse.BooleanOptionalAction, default=True, help="brax PPO comparison")
     parser.add_argument("--rmse-factor", type=float, default=1.5, help="threshold: this times LQR's RMSE")
@@ -320,6 +400,32 @@ def main(argv=None) -> int:
             )
         console.print(table)
 
+    if args.split:
+        splits = []
+        for algo in args.algos:
+            console.print(f"run split: {algo}, a whole run at the config's settings")
+            splits.append(run_split(env, params, cfg, algo, args.repeats, args.eval_episodes))
+        record["run_split"] = splits
+        table = Table(title="where a training run's wall time goes (compile apart)")
+        columns = ("algo", "copies", "iterations", "collection", "update", "everything else", "run s", "compile s",
+                   "RMSE / LQR", "learned")  # fmt: skip
+        for column in columns:
+            table.add_column(column, justify="right")
+        for row in splits:
+            table.add_row(
+                row["algo"],
+                f"{row['copies']:,}",
+                str(row["iterations"]),
+                f"{row['collect_share']:.0%}",
+                f"{row['update_share']:.0%}",
+                f"{row['other_share']:.0%}",
+                f"{row['run_s']:.1f}",
+                f"{row['compile_s']:.1f}",
+                f"{row['final_rmse_over_lqr']:.2f}",
+                str(row["learned"]),
+            )
+        console.print(table)
+
     if args.threshold:
         eval_key = jax.random.key(123)
         threshold = lqr_threshold(env, params, eval_key, args.eval_episodes, args.rmse_factor)
@@ -362,6 +468,14 @@ def main(argv=None) -> int:
                 f"- time to {args.rmse_factor}x LQR's RMSE, {name}: {result['time_s']:.1f} s, "
                 f"{result['env_steps']:,} env steps ({'reached' if result['reached'] else 'not reached'})"
             )
+    for row in record.get("run_split", []):
+        notes.append(
+            f"- a whole {row['algo']} run ({row['copies']:,} copies, {row['iterations']} iterations, "
+            f"{row['run_s']:.1f} s + {row['compile_s']:.1f} s compile): collection {row['collect_share']:.0%}, "
+            f"update {row['update_share']:.0%}, everything else {row['other_share']:.0%}; final policy "
+            f"{row['final_rmse_over_lqr']:.2f}x LQR's RMSE, crash rate {row['final_crash_rate']:.0%} "
+            f"({'learned' if row['learned'] else 'NOT learned'} within the default budget)"
+        )
     if "brax_over_ours" in threshold:
         notes.append(f"- brax / ours: {threshold['brax_over_ours']:.2f}")
     write_markdown_table(

@@ -37,6 +37,7 @@ from collections.abc import Callable
 
 from scg_cli.common import UsageError
 from scg_cli.evaluate import add_compare_parser, add_eval_parser, run_compare, run_eval
+from scg_cli.progress import catch_swallowed_interrupts
 from scg_cli.reproduce import add_reproduce_parser, run_reproduce
 from scg_cli.rollout import add_rollout_parser, run_rollout
 from scg_cli.sweep import add_sweep_parser, run_sweep_command
@@ -124,7 +125,8 @@ def main(argv: list[str] | None = None) -> int:
     _, run, interrupted = _SUBCOMMANDS[args.command]
     console = Console()
     try:
-        return run(args, console)
+        with catch_swallowed_interrupts():
+            return run(args, console)
     except UsageError as error:
         print(f"{subcommand_parsers[args.command].prog}: error: {error}", file=sys.stderr, flush=True)
         return 2

@@ -61,6 +61,15 @@ def positive_int(text: str) -> int:
     return value
 
 
+def add_env_command(subparsers, name: str, summary: str, description: str) -> argparse.ArgumentParser:
+    """The subcommand ``name`` of a command that builds an environment: its parser, with the environment options
+    of :func:`add_env_arguments` already added. ``summary`` is the line of ``scg-jax --help``, ``description`` the
+    text of ``scg-jax NAME --help``."""
+    parser = subparsers.add_parser(name, help=summary, description=description)
+    add_env_arguments(parser)
+    return parser
+
+
 def add_env_arguments(parser: argparse.ArgumentParser) -> None:
     """Options that build an environment; shared by every subcommand that makes one.
 

@@ -12,7 +12,7 @@ import numpy as np
 from scg_cli.common import (
     OUT_CHECKED,
     UsageError,
-    add_env_arguments,
+    add_env_command,
     check_output,
     env_arrays,
     jsonable,
@@ -52,17 +52,17 @@ def _add_controller_arguments(parser: argparse.ArgumentParser) -> None:
 def add_eval_parser(subparsers) -> argparse.ArgumentParser:
     from scg_algorithms import CONTROLLERS
 
-    parser = subparsers.add_parser(
+    parser = add_env_command(
+        subparsers,
         "eval",
-        help="evaluate a controller or a trained policy on N episodes and save metrics, data and a plot",
-        description=(
+        "evaluate a controller or a trained policy on N episodes and save metrics, data and a plot",
+        (
             "Evaluate one controller on --episodes episodes with the paper's metrics (RMSE, its std, worst-case "
             "RMSE as CVaR at 0.5, failure rate, steps in violation, return, length, compute time per step). The "
             "controller's options come from the config's controllers.NAME section. Writes --out (JSON), and the "
             "trajectories (.npz) and a plot (.png) next to it."
         ),
     )
-    add_env_arguments(parser)
     parser.add_argument(
         "--controller",
         required=True,
@@ -80,12 +80,12 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
 def add_compare_parser(subparsers) -> argparse.ArgumentParser:
     from scg_algorithms import CONTROLLERS
 
-    parser = subparsers.add_parser(
+    parser = add_env_command(
+        subparsers,
         "compare",
-        help="evaluate several controllers on one config and print them side by side",
-        description="Evaluate each controller as scg-jax eval does, on the same episodes (same seed).",
+        "evaluate several controllers on one config and print them side by side",
+        "Evaluate each controller as scg-jax eval does, on the same episodes (same seed).",
     )
-    add_env_arguments(parser)
     parser.add_argument(
         "--controllers",
         required=True,

@@ -7,6 +7,12 @@ nothing to redraw, so plain lines are printed instead: one when a task starts, t
 host-side evaluation: a background thread keeps time) and one for its last count. Notes are printed as they come.
 ``command_progress`` keeps a task open for a command's whole run, so the lines keep coming between the library's
 tasks too (building controllers, loading, writing).
+
+Ctrl-C that Python swallowed: a ``KeyboardInterrupt`` raised while Python runs a callback of its own (a garbage
+collector callback, as JAX installs one) is printed as "Exception ignored" and dropped, and the command would go on
+as if nothing happened. ``catch_swallowed_interrupts`` records such an interrupt instead, and the next progress
+callback (``start``, ``update`` or ``note``: the library calls them at least at every task, e.g. before writing
+results) raises it again, so the command stops as on any other Ctrl-C.
 """
 
 from __future__ import annotations
@@ -14,6 +20,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -21,6 +28,35 @@ from collections.abc import Iterator
 import numpy as np
 
 from scg_algorithms.progress import SILENT, Progress, Task
+
+_SWALLOWED_INTERRUPT = threading.Event()
+
+
+@contextlib.contextmanager
+def catch_swallowed_interrupts() -> Iterator[None]:
+    """While the block runs, a ``KeyboardInterrupt`` that Python would print as "Exception ignored" and drop is
+    recorded (silently) and raised again by the next progress callback (module docstring)."""
+    previous = sys.unraisablehook
+
+    def hook(unraisable):
+        if unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt):
+            _SWALLOWED_INTERRUPT.set()
+        else:
+            previous(unraisable)
+
+    _SWALLOWED_INTERRUPT.clear()
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        sys.unraisablehook = previous
+        _SWALLOWED_INTERRUPT.clear()
+
+
+def _raise_swallowed_interrupt() -> None:
+    if _SWALLOWED_INTERRUPT.is_set():
+        _SWALLOWED_INTERRUPT.clear()
+        raise KeyboardInterrupt
 
 
 def positive_seconds(text: str) -> float:
@@ -119,12 +155,14 @@ class ConsoleProgress:
         return Progress(start=self.start, update=self.update, done=self.done, note=self.note)
 
     def note(self, text: str) -> None:
+        _raise_swallowed_interrupt()
         with self.lock:
             self.console.print(text, markup=False, highlight=False, soft_wrap=True)
 
     def start(self, task: Task, announce: bool = True) -> None:
         """Open ``task``; when piped its first line is printed now, or (``announce=False``) only once ``interval``
         seconds pass without a line, so a command that fails at once prints nothing but its error."""
+        _raise_swallowed_interrupt()
         with self.lock:
             entry = _Open(task)
             self.open.append(entry)
@@ -138,6 +176,7 @@ class ConsoleProgress:
                 self._draw(entry)
 
     def update(self, completed: int, info) -> None:
+        _raise_swallowed_interrupt()
         with self.lock:
             if not self.open:
                 return

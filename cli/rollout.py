@@ -13,7 +13,7 @@ import numpy as np
 from scg_cli.common import (
     OUT_CHECKED,
     UsageError,
-    add_env_arguments,
+    add_env_command,
     check_output,
     env_arrays,
     float_list,
@@ -27,16 +27,16 @@ POLICIES = ("zero", "random", "linear")
 
 
 def add_rollout_parser(subparsers) -> argparse.ArgumentParser:
-    parser = subparsers.add_parser(
+    parser = add_env_command(
+        subparsers,
         "rollout",
-        help="roll out a simple policy in parallel copies and save data, metrics and a plot",
-        description=(
+        "roll out a simple policy in parallel copies and save data, metrics and a plot",
+        (
             "Run one episode of --num-envs parallel copies under a simple policy acting on the physical input "
             "(N): zero holds the reference input (hover thrust, 0 N for the cart-pole), random draws uniformly "
             "within the actuator limits, linear applies u = u_ref - K (x - x_ref)."
         ),
     )
-    add_env_arguments(parser)
     run = parser.add_argument_group("rollout")
     run.add_argument("--policy", default="linear", choices=POLICIES, help="policy (default: %(default)s)")
     run.add_argument(

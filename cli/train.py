@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 
 from scg_algorithms.learners import LEARNERS, learner_spec, prior_learners
-from scg_cli.common import UsageError, add_env_arguments, check_output, make_env, positive_int, summary_table
+from scg_cli.common import UsageError, add_env_command, check_output, make_env, positive_int, summary_table
 from scg_cli.progress import add_progress_argument, command_progress, positive_seconds
 from scg_cli.scale import add_scale_arguments, is_main_process, make_mesh, start_distributed
 
@@ -24,11 +24,12 @@ FLAGS = {
 
 def add_train_parser(subparsers) -> argparse.ArgumentParser:
     priors = " and ".join(prior_learners())
-    parser = subparsers.add_parser(
+    parser = add_env_command(
+        subparsers,
         "train",
-        help="train a learner (" + ", ".join(LEARNERS) + ") on a config's env; save the result, its learning curve "
+        "train a learner (" + ", ".join(LEARNERS) + ") on a config's env; save the result, its learning curve "
         "and metrics",
-        description=(
+        (
             "Train a learner with the options of its config section (training.ALGO for the JAX learners; "
             "controllers.gp_mpc; safety_filters.learned_cbf; defaults where absent) on the env of the config, with "
             "its randomisation and disturbances. Shows progress (a bar on a terminal, a plain line every "
@@ -39,7 +40,6 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
             "given."
         ),
     )
-    add_env_arguments(parser)
     parser.add_argument(
         "--algo",
         required=True,

@@ -8,7 +8,7 @@ import shlex
 from pathlib import Path
 
 from scg_algorithms.tune.spaces import SEARCH_SPACES
-from scg_cli.common import UsageError, add_env_arguments, check_output, make_env, positive_int
+from scg_cli.common import UsageError, add_env_command, check_output, make_env, positive_int
 from scg_cli.progress import add_progress_argument, command_progress
 
 # tune's arguments as this command's flags, for its error messages.
@@ -35,10 +35,11 @@ def _tail_share(text: str) -> float:
 
 
 def add_tune_parser(subparsers) -> argparse.ArgumentParser:
-    parser = subparsers.add_parser(
+    parser = add_env_command(
+        subparsers,
         "tune",
-        help="search a method's hyperparameters (" + ", ".join(SEARCH_SPACES) + ") with Optuna; write the best config",
-        description=(
+        "search a method's hyperparameters (" + ", ".join(SEARCH_SPACES) + ") with Optuna; write the best config",
+        (
             "Tune a method's options on the env of a config with Optuna (TPE sampler, median pruner). Each trial "
             "trains the method (a learner, or GP-MPC) with options drawn from its search space on top of the config's "
             "section (training.ALGO, controllers.gp_mpc; an MPC is only evaluated), evaluates it on --eval-episodes "
@@ -48,7 +49,6 @@ def add_tune_parser(subparsers) -> argparse.ArgumentParser:
             "trials.csv and trials.png; a trial trained alone keeps its run in DIR/trials/NNNN."
         ),
     )
-    add_env_arguments(parser)
     parser.add_argument(
         "--algo", required=True, choices=tuple(SEARCH_SPACES), metavar="ALGO",
         help="method to tune: " + ", ".join(SEARCH_SPACES),

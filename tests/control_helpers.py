@@ -29,13 +29,11 @@ def env_and_random_states(make_kwargs: dict, spread, count: int, offset=0.0, see
         U(-spread, spread)`` (count, nx).
     """
     from scg_algorithms.base import Reference
+    from scg_algorithms.mpc.cases import random_states
 
     make_kwargs = dict(make_kwargs)
     env = scg_jax.make(make_kwargs.pop("system"), **make_kwargs)
     params = env.default_params
     reference = Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
-    rng = np.random.default_rng(seed)
-    n = reference.x_ref.shape[0]
-    steps = rng.integers(0, n - 1, count) if env.task == "tracking" else np.zeros(count, int)
-    states = reference.x_ref[steps] + offset + rng.uniform(-1.0, 1.0, (count, env.nx)) * np.asarray(spread)
+    steps, states = random_states(env, reference, offset, spread, count, seed)
     return env, params, reference, steps, states

@@ -309,35 +309,28 @@ def _learns(name, train, **options):
     assert last[2] < first[2]
 
 
-def _agent(name):
-    """brax's ``train`` of the agent and the options it learns the cart-pole with (small networks, short runs)."""
-    if name == "ppo":
-        from brax.training.agents.ppo import networks, train
+def _sac_agent():
+    """brax's SAC ``train`` and the options it learns the cart-pole with (small networks, a short run).
 
-        networks = functools.partial(
-            networks.make_ppo_networks, policy_hidden_layer_sizes=(32, 32), value_hidden_layer_sizes=(32, 32)
-        )
-        options = dict(
-            num_timesteps=100_000, num_envs=64, batch_size=32, num_minibatches=8, unroll_length=20,
-            num_updates_per_batch=8, learning_rate=3e-3, entropy_cost=1e-3, discounting=0.97,
-        )  # fmt: skip
-    else:
-        from brax.training.agents.sac import networks, train
+    At this budget (seed 0): the evaluated reward goes 11.4 -> 44.0 -> 72.3 and the cost 23.6 -> 14.4 -> 0 (the test
+    asks for a rise of 40 to above 60; 12 k steps before)."""
+    from brax.training.agents.sac import networks, train
 
-        networks = functools.partial(networks.make_sac_networks, hidden_layer_sizes=(32, 32))
-        options = dict(
-            num_timesteps=12_000, num_envs=16, batch_size=256, grad_updates_per_step=16, min_replay_size=1000,
-            max_replay_size=100_000, learning_rate=3e-3, discounting=0.97, tau=0.05,
-        )  # fmt: skip
+    networks = functools.partial(networks.make_sac_networks, hidden_layer_sizes=(32, 32))
+    options = dict(
+        num_timesteps=6_000, num_envs=16, batch_size=256, grad_updates_per_step=16, min_replay_size=1000,
+        max_replay_size=100_000, learning_rate=3e-3, discounting=0.97, tau=0.05,
+    )  # fmt: skip
     return train.train, {**options, "network_factory": networks}
 
 
 @pytest.mark.slow
 @_IGNORE_REPLICATED
-@pytest.mark.parametrize("name", ["ppo", "sac"])
-def test_brax_agent_learns_cartpole_stabilization(name):
-    train, options = _agent(name)
-    _learns(name, train, **options)
+def test_brax_sac_learns_cartpole_stabilization():
+    """brax's SAC learns on the adapter. That brax's PPO learns (100 k steps; at 50 k its cost rose, 20.2 -> 26.5) is
+    the example of docs/adapters.md, which tests/test_docs.py runs with these checks (one PPO training per run)."""
+    train, options = _sac_agent()
+    _learns("sac", train, **options)
 
 
 def test_importing_the_adapter_prints_no_warp_message():

@@ -15,10 +15,11 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
 from rich.console import Console
 
 from scg_algorithms.progress import Task
-from scg_cli.progress import ConsoleProgress, format_seconds
+from scg_cli.progress import ConsoleProgress, catch_swallowed_interrupts, format_seconds
 
 
 def _piped(interval: float):
@@ -58,6 +59,27 @@ def test_piped_output_gets_a_line_every_interval_while_nothing_is_reported():
     count = len(stream.getvalue().splitlines())
     time.sleep(0.2)
     assert len(stream.getvalue().splitlines()) == count  # and prints nothing after it
+
+
+class _InterruptedWhenCollected:
+    """Raises Ctrl-C's exception where Python swallows it: in ``__del__``, as in JAX's garbage-collector callback."""
+
+    def __del__(self):
+        raise KeyboardInterrupt
+
+
+def test_a_swallowed_ctrl_c_is_raised_at_the_next_progress_callback_and_prints_nothing(capsys):
+    progress = ConsoleProgress(Console(file=io.StringIO()), interval=60.0).progress()
+    hook = sys.unraisablehook
+    with catch_swallowed_interrupts():
+        progress.start(Task("work", total=3))
+        progress.update(1, {})
+        _InterruptedWhenCollected()  # collected at once: Python hands its exception to sys.unraisablehook
+        with pytest.raises(KeyboardInterrupt):
+            progress.update(2, {})
+        progress.update(3, {})  # raised once, then forgotten
+    assert capsys.readouterr().err == ""  # no "Exception ignored" lines
+    assert sys.unraisablehook is hook  # outside the block Python reports such exceptions as before
 
 
 def test_on_a_terminal_a_counted_task_leaves_its_last_line():

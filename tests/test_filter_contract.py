@@ -14,7 +14,9 @@ import pytest
 from scg_algorithms.safety_filters import contract as C
 
 EPISODES = 16  # as the benchmark table and `scg-jax eval --episodes 16` (JAX filters: compile time dominates)
-HOST_EPISODES = 2  # the nonlinear MPSC runs IPOPT per copy and step on the host
+# The nonlinear MPSC runs IPOPT per copy and step on the host: one 5 s episode (250 solves). Measured on it: LQR 24
+# violating steps, filtered 0 (bound 2.4); RMSE 0.0281 vs LQR's 0.0245 (bound 1.5x: 0.0368).
+HOST_EPISODES = 1
 
 CART_X, CART_THETA, QUAD_1D, QUAD_2D_Z, QUAD_2D_X, QUAD_3D_Z = range(len(C.CASES))
 

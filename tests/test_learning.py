@@ -1,12 +1,12 @@
-"""PPO and SAC learn cart-pole stabilization within the default budget of configs/cartpole_stabilization.yaml.
+"""PPO and SAC learn cart-pole stabilization (configs/cartpole_stabilization.yaml) within a small budget.
 
-"Learned" means, on 32 evaluation episodes drawn like the training ones (initial state, masses, sensor noise): no
-crash, and the deterministic policy's RMSE within 4x LQR's on the same episodes (LQR has the true model), where
-the untrained policy falls in most episodes or drifts to over ten times that. The budgets reach 1.2-1.7x (PPO) and
-1.4-3.1x (SAC) on seeds 0-2; the same seed lands anywhere in that range on another machine, because training
-amplifies rounding differences (SAC's seed 0 gives 1.4x or 3.1x depending only on OPENBLAS_CORETYPE), so the bound
-leaves room for the spread rather than for one machine's numbers. Each test trains the whole budget in one jitted
-``make_train`` call: about 25-60 s on 2 CPU cores.
+"Learned" means, on 16 evaluation episodes drawn like the training ones (initial state, masses, sensor noise): no
+crash, and the deterministic policy's RMSE within ``RMSE_FACTOR[algo]`` times LQR's on the same episodes (LQR has
+the true model), where the untrained policy falls in most episodes or drifts to over three times that. The budgets
+are the smallest tried that clear the bound on seeds 0-2 with a margin (measured ratios in ``BUDGETS``' comments;
+training amplifies rounding differences, so another machine lands elsewhere in a similar range). The test trains
+seed 0 in one jitted ``make_train`` call. That the config's *default* budget learns (to 1.2-3x LQR's RMSE) is
+``benchmarks/train.py``'s check (its run split trains the whole default run and evaluates it), not a test's.
 """
 
 import jax
@@ -17,8 +17,18 @@ from scg_algorithms.lqr import make_lqr
 from scg_algorithms.rl.policy import algorithm_module, policy_controller
 from scg_jax.config import load_config, make_from_config
 
-EPISODES = 32
-RMSE_FACTOR = 4.0
+EPISODES = 16
+# Overrides of the config's training section, at this budget on seeds 0-2 (16 episodes): PPO, 128 iterations of
+# 64 copies x 32 steps (1/16 of the default budget): RMSE 1.34-1.66x LQR's against the bound of 4x, last training
+# episode's return 242-245 of 250. Half that budget with 32-unit layers stays at 14-22x. SAC, 16 k transitions
+# (about 1/10) on 16 copies, a gradient step of 128 transitions per transition: RMSE 4.1-5.0x against 10x (as
+# DDPG's test), return 98-237; 30 k transitions at 0.5 steps per transition stay at 13-29x.
+BUDGETS = {
+    "ppo": {"total_env_steps": 262_144, "num_envs": 64},
+    "sac": {"total_env_steps": 16_000, "num_envs": 16, "utd": 1.0, "batch_size": 128},
+}
+RMSE_FACTOR = {"ppo": 4.0, "sac": 10.0}
+RETURN_SHARE = {"ppo": 0.9, "sac": 0.3}  # of the 250-step episode's best return, reached by the last episodes
 
 
 @pytest.fixture(scope="module")
@@ -36,18 +46,20 @@ def _policy_summary(env, params, learner, runner_state):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("algo", ["ppo", "sac"])
-def test_learns_cartpole_stabilization_within_the_default_budget(cartpole, algo):
+def test_learns_cartpole_stabilization_within_a_small_budget(cartpole, algo):
     cfg, env, params, lqr = cartpole
-    learner = algorithm_module(algo, "make_learner")(cfg.training[algo], env)
+    options = {**cfg.training[algo], **BUDGETS[algo]}
+    learner = algorithm_module(algo, "make_learner")(options, env)
     runner_state = jax.jit(learner.init)(jax.random.key(0), params)
     untrained = _policy_summary(env, params, learner, runner_state)
-    train = algorithm_module(algo, "make_train")(cfg.training[algo], env)
+    train = algorithm_module(algo, "make_train")(options, env)
     runner_state, metrics = jax.jit(train)(jax.random.key(0), params)
     trained = _policy_summary(env, params, learner, runner_state)
+    bound = RMSE_FACTOR[algo] * lqr["rmse"]
     assert trained["crash_rate"] == 0.0 and trained["length"] == env.num_steps
-    assert trained["rmse"] < RMSE_FACTOR * lqr["rmse"]
-    # The untrained policy is far from it: it crashes, or drifts to several times the threshold.
-    assert untrained["crash_rate"] > 0.5 or untrained["rmse"] > 3 * RMSE_FACTOR * lqr["rmse"]
+    assert trained["rmse"] < bound
+    # The untrained policy is far from it: it crashes, or drifts to several times the bound.
+    assert untrained["crash_rate"] > 0.5 or untrained["rmse"] > 3 * bound
     # The training episodes' return (exp(-c) per step) rose over the run.
     returns = metrics["episode_return"]
-    assert float(returns[-1]) > 0.9 * env.num_steps > float(returns[returns > 0][0])
+    assert float(returns[-1]) > RETURN_SHARE[algo] * env.num_steps > float(returns[returns > 0][0])

@@ -10,25 +10,16 @@ import scg_jax
 from scg_algorithms.base import Reference
 from scg_algorithms.evaluation import evaluate
 from scg_algorithms.lqr import make_lqr
+from scg_algorithms.mpc import cases, structured
 from scg_algorithms.mpc import qp as qp_lib
-from scg_algorithms.mpc import structured
 from scg_algorithms.mpc.linear import make_linear_mpc, make_linear_mpc_casadi
-from tests.control_helpers import env_and_random_states
 
 # Position box inside the default state bounds, so some stages of a perturbed tracking QP press against it.
-QUAD_CONSTRAINTS = [
-    {"type": "default", "on": "state"},
-    {"type": "default", "on": "input"},
-    {"type": "bounded", "on": "state", "active_dims": [0, 2], "low": [-0.52, 0.48], "high": [0.52, 1.52]},
-]
+QUAD_CONSTRAINTS = cases.case_constraints("quadrotor_2d")
 # Cart within 0.3 m, force within 2 N (LQR asks for more from the states below), plus the default input rows,
 # which repeat the 10 N actuator limits (the controllers merge them).
-CARTPOLE_CONSTRAINTS = [
-    {"type": "bounded", "on": "state", "active_dims": [0], "low": [-0.3], "high": [0.3]},
-    {"type": "abs_bound", "on": "input", "bound": 2.0},
-    {"type": "default", "on": "input"},
-]
-CARTPOLE_SPREAD = np.array([0.25, 0.5, 0.3, 0.5])  # half-widths of the random states (m, m/s, rad, rad/s)
+CARTPOLE_CONSTRAINTS = cases.case_constraints("cartpole", extra=[{"type": "abs_bound", "on": "input", "bound": 2.0}])
+CARTPOLE_SPREAD = np.array(cases.CASES["cartpole"].spread)  # half-widths of the random states (m, m/s, rad, rad/s)
 
 
 @pytest.fixture(scope="module")
@@ -231,57 +222,18 @@ def test_jax_and_casadi_soft_constrained_mpc_agree_on_the_quadrotor(quadrotor, p
     assert violated >= 3  # most plans leave the position box: the slacks are priced the same way in both
 
 
-# Per system: make() arguments, the random states' centre offset and half-widths (added to the reference point of a
-# random step), and what presses: the cart-pole's 2 N input box and 0.3 m cart box; the 1D quadrotor's goal at
-# 1.8 m above its 1.5 m ceiling; the 2D quadrotor's position box around its circle; the 3D quadrotor's position box.
-PARITY_CASES = {
-    "cartpole": (dict(system="cartpole", constraints=CARTPOLE_CONSTRAINTS), 0.0, CARTPOLE_SPREAD),
-    "quadrotor_1d": (
-        dict(
-            system="quadrotor_1d",
-            goal=[1.8, 0.0],
-            constraints=[
-                {"type": "bounded", "on": "state", "active_dims": [0], "low": [-10.0], "high": [1.5]},
-                {"type": "default", "on": "input"},
-            ],
-        ),
-        np.array([-0.6, 0.0]),
-        np.array([0.3, 1.0]),
-    ),
-    "quadrotor_2d": (
-        dict(system="quadrotor_2d", task="tracking", constraints=QUAD_CONSTRAINTS),
-        0.0,
-        [0.1, 0.3] * 2 + [0.3, 0.5],
-    ),
-    "quadrotor_3d": (
-        dict(
-            system="quadrotor_3d",
-            goal=[0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0],
-            constraints=[
-                {"type": "default", "on": "input"},
-                {
-                    "type": "bounded",
-                    "on": "state",
-                    "active_dims": [0, 2, 4],
-                    "low": [-0.3, -0.3, 0.7],
-                    "high": [0.3, 0.3, 1.3],
-                },
-            ],
-        ),
-        0.0,
-        np.array([0.3, 0.5] * 3 + [0.2] * 3 + [0.5] * 3),
-    ),
-}
-
-
-@pytest.mark.parametrize("system", list(PARITY_CASES))
+@pytest.mark.parametrize("system", list(cases.CASES))
 def test_admm_linear_mpc_matches_qpoases_to_a_millinewton_with_active_input_and_state_rows(system):
     # Float32, 100 random states per system through one vmapped call (the benchmark runs 1,000); CasADi qpOASES
     # one by one in float64. The states where qpOASES fails (hard state rows the plant cannot meet; on the 3D
     # quadrotor also some where the ADMM converges to a plan that meets them) are left out of the comparison.
-    make_kwargs, offset, spread = PARITY_CASES[system]
+    # The cart-pole's force is also held within 2 N (LQR asks for more from these states).
+    extra = [{"type": "abs_bound", "on": "input", "bound": 2.0}] if system == "cartpole" else []
     count = 100
-    env, params, reference, steps, states = env_and_random_states(make_kwargs, spread, count, offset)
+    env, params = cases.make_case_env(system, extra=extra)
+    reference = Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
+    case = cases.CASES[system]
+    steps, states = cases.random_states(env, reference, case.offset, case.spread, count)
     options = {"horizon": 20}
     jax_mpc = make_linear_mpc(env, params, options)
     casadi_mpc = make_linear_mpc_casadi(env, params, options)
@@ -326,11 +278,12 @@ def test_without_active_constraints_the_first_input_is_the_lqr_input(cartpole):
 
 def test_an_infeasible_qp_falls_back_to_the_clipped_lqr_input(cartpole):
     # The cart 1 m beyond its 0.3 m bound: no plan meets the hard row at the next state, so the input is LQR's,
-    # clipped to the 2 N box.
+    # clipped to the 2 N box. (The first-input test's controller and argument types: the same program, which the
+    # run's compilation cache then holds.)
     env, params, reference = cartpole
-    mpc = make_linear_mpc(env, params, {"horizon": 10})
+    mpc = make_linear_mpc(env, params, {"horizon": 20})
     x = np.array([1.3, 0.0, 0.0, 0.0])
-    u, status = jax.jit(mpc.act)(mpc.reset(None, reference), jnp.asarray(x, jnp.float32), 0, reference)
+    u, status = jax.jit(mpc.act)(mpc.reset(None, reference), jnp.asarray(x, jnp.float32), np.int64(0), reference)
     assert int(status.status) == structured.INFEASIBLE
     K = make_lqr(env, params).info["K"][0]
     np.testing.assert_allclose(u, np.clip(-K @ x, -2.0, 2.0), rtol=1e-6)

@@ -233,8 +233,9 @@ def test_action_scale_widens_a_quadrotor_policy_to_twice_hover_thrust():
 
 
 # --------------------------------------------------------------------------------------------- resume
-# 6 iterations of 8 copies x 16 steps.
-TINY_PPO = tiny_ppo(total_env_steps=768, num_epochs=2, num_minibatches=2)
+# 6 iterations of 8 copies x 16 steps; a constant step size, so the training program does not depend on the budget
+# and every run below (any budget, chunks of 2) reuses one compiled chunk (the persistent compile cache).
+TINY_PPO = {**tiny_ppo(total_env_steps=768, num_epochs=2, num_minibatches=2), "lr_decay": False}
 ITERATIONS = 6
 
 
@@ -391,16 +392,15 @@ def test_a_finished_run_is_extended_by_raising_the_budget(tmp_path):
     does not depend on the budget). A budget below the checkpoint is refused."""
     env = scg_jax.make("cartpole")
     params, key = env.default_params, jax.random.key(3)
-    options = {**TINY_PPO, "lr_decay": False, "num_epochs": 1}
-    short = make_learner({**options, "total_env_steps": 256}, env)
-    long = make_learner({**options, "total_env_steps": 512}, env)
-    run_training(short, env, params, key, tmp_path / "split")
-    extended = run_training(long, env, params, key, tmp_path / "split", resume=True)
-    whole = run_training(long, env, params, key, tmp_path / "whole")
+    short = make_learner({**TINY_PPO, "total_env_steps": 256}, env)
+    long = make_learner({**TINY_PPO, "total_env_steps": 512}, env)
+    run_training(short, env, params, key, tmp_path / "split", chunk=2)
+    extended = run_training(long, env, params, key, tmp_path / "split", chunk=2, resume=True)
+    whole = run_training(long, env, params, key, tmp_path / "whole", chunk=2)
     assert extended["resumed_from_iteration"] == 2 and extended["iterations"] == whole["iterations"] == 4
     assert extended["env_steps"] == 512
     assert (tmp_path / "split" / "policy.msgpack").read_bytes() == (tmp_path / "whole" / "policy.msgpack").read_bytes()
-    tiny = make_learner({**options, "total_env_steps": 128}, env)
+    tiny = make_learner({**TINY_PPO, "total_env_steps": 128}, env)
     with pytest.raises(ValueError, match=r"is at iteration 4 \(512 env steps\), beyond this budget of 1 iterations"):
         run_training(tiny, env, params, key, tmp_path / "split", resume=True)
 

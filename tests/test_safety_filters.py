@@ -41,6 +41,10 @@ def _cartpole_env():
 
 
 # --------------------------------------------------------------------------------------------- closed form
+# Compiled once per input size for all the worked cases (the multipliers, box and price are traced).
+_solve_single = jax.jit(solve_single)
+
+
 @pytest.mark.parametrize(
     "u_l, a, c, box, inv_two_k, u_expected, s_expected, solved",
     [
@@ -61,7 +65,7 @@ def _cartpole_env():
 def test_closed_form_worked_numbers(u_l, a, c, box, inv_two_k, u_expected, s_expected, solved):
     with jax.enable_x64(True):
         n = len(u_l)
-        u, s, ok = solve_single(
+        u, s, ok = _solve_single(
             jnp.asarray(u_l), jnp.asarray(a), jnp.asarray(c), -box * jnp.ones(n), box * jnp.ones(n), inv_two_k
         )
         np.testing.assert_allclose(np.asarray(u), u_expected, rtol=0, atol=1e-12)

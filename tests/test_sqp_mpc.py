@@ -49,13 +49,14 @@ def cartpole_episodes():
 
 
 def test_sqp_rti_tracks_as_well_as_ipopt_on_the_same_episodes(cartpole_episodes):
-    # Float32 SQP-RTI against IPOPT on the same 4 seeded cart-pole stabilisation episodes (the benchmark also runs
-    # the 2D quadrotor's circle and the 3D quadrotor's stabilisation: ratios 0.9999 and 1.0002 there).
+    # Float32 SQP-RTI against IPOPT on the same 2 seeded cart-pole stabilisation episodes (the benchmark also runs
+    # the 2D quadrotor's circle and the 3D quadrotor's stabilisation: ratios 0.9999 and 1.0002 there). Measured on
+    # these 2 episodes: RMSE ratio 1.0000 (bound 1.05), inputs within 1.1e-6 N (bound 2e-2 N); the same on 4.
     env, params = cartpole_episodes
     key = jax.random.key(0)
-    ipopt = evaluate(env, params, make_nonlinear_mpc(env, params, {"horizon": 20}), key, 4, measure_time=False)
+    ipopt = evaluate(env, params, make_nonlinear_mpc(env, params, {"horizon": 20}), key, 2, measure_time=False)
     rti_controller = make_nonlinear_mpc(env, params, {"horizon": 20, "solver": "sqp_rti"})
-    rti = evaluate(env, params, rti_controller, key, 4, measure_time=False)
+    rti = evaluate(env, params, rti_controller, key, 2, measure_time=False)
     assert rti.summary["failure_rate"] == ipopt.summary["failure_rate"] == 0.0
     assert rti.summary["rmse"] <= 1.05 * ipopt.summary["rmse"]
     np.testing.assert_allclose(rti.trajectory["u_cmd"], ipopt.trajectory["u_cmd"], atol=2e-2)

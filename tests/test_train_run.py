@@ -177,3 +177,26 @@ def test_learner_parts_come_from_the_registry():
         learner_part("gp_mpc", "Config")
     assert [n for n, s in LEARNERS.items() if not s.is_jax] == ["gp_mpc", "learned_cbf"]
     assert LEARNERS["learned_cbf"].loads_as == "filter" and LEARNERS["gp_mpc"].section == "controllers.gp_mpc"
+
+
+@pytest.mark.parametrize("algo", ["ppo", "sac"])
+def test_collect_is_the_collection_of_the_iteration_update_runs(algo):
+    # benchmarks/train.py times Learner.collect as the collection part of an iteration: it must be exactly that
+    # part (same key, same policy), so the collector it returns is bit for bit the one update carries on with.
+    from scg_algorithms.rl.policy import algorithm_module
+    from tests.rl_helpers import TINY_OFF_POLICY
+
+    env = scg_jax.make("cartpole", episode_len_sec=1.0)
+    params = env.default_params
+    options = tiny_ppo(256, num_epochs=1, num_minibatches=2) if algo == "ppo" else TINY_OFF_POLICY
+    learner = algorithm_module(algo, "make_learner")(options, env)
+    update = jax.jit(learner.update)
+    state = learner.init(jax.random.key(SEED), params)
+    for _ in range(getattr(learner.config, "warmup_iterations", 0)):  # SAC past its random-action warm-up
+        state, _ = update(state, params)
+    collector, transitions = jax.jit(learner.collect)(state, params)
+    updated, _ = update(state, params)
+    data = lambda a: np.asarray(jax.random.key_data(a) if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key) else a)  # noqa: E731
+    for a, b in zip(jax.tree.leaves(collector), jax.tree.leaves(updated.collector), strict=True):
+        np.testing.assert_array_equal(data(a), data(b))
+    assert np.asarray(transitions.reward).size == learner.steps_per_iteration

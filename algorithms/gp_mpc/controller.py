@@ -9,6 +9,12 @@ along the warm-start plan under the prior's LQR gain, at chance level ``prob`` (
 prior's LQR (about the goal, or about the reference on tracking tasks) with exploration noise (all copies at once);
 every round fits the GP to all transitions so far, evaluates the resulting GP-MPC with the common harness, and
 collects the next round's episodes with it.
+
+``solver="sqp_rti"`` builds the same controller in JAX instead (``gp_sqp_mpc_builder``): one SQP real-time iteration per
+step on the structured horizon-QP solver (``scg_algorithms.mpc.sqp``) with the same prediction model and the same
+margins, computed along the shifted plan; the harness runs it inside its jitted, batched closed loop, and ``learn``
+evaluates every round's GP with one compiled program (the GP's arrays are arguments, so a new GP of the same size
+compiles nothing).
 """
 
 from __future__ import annotations
@@ -19,13 +25,14 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from scg_algorithms import controller_setup as setup
 from scg_algorithms import gp
-from scg_algorithms.base import check_fields, option, parse_options
-from scg_algorithms.evaluation import evaluate
-from scg_algorithms.gp_mpc import data
+from scg_algorithms.base import JaxController, check_fields, option, parse_options
+from scg_algorithms.evaluation import evaluate, make_evaluator
+from scg_algorithms.gp_mpc import data, tightening
 from scg_algorithms.gp_mpc.model import PlanUncertainty, fit_model_error, learned_model
 from scg_algorithms.mpc.nonlinear import NonlinearMPC
 from scg_algorithms.mpc.nonlinear import Options as NMPCOptions
@@ -56,6 +63,12 @@ class Options(setup.MPCOptions):
     exploration_std: float = option(0.05, "exploration noise of round 0, as a fraction of each input's range")
     eval_episodes: int = option(8, "episodes each round is evaluated on")
     seed: int = option(0, "seed of the data collection and the GP fit")
+    solver: str = option(
+        "ipopt",
+        "ipopt (CasADi, host, one copy: the reference) or sqp_rti (JAX, batched: one QP per step about the shifted "
+        "plan, scg_algorithms.mpc.sqp)",
+        choices=("ipopt", "sqp_rti"),
+    )
 
     def _check(self, path: str) -> None:
         positive_fields = ("horizon", "max_iter", "tol", "soft_penalty", "num_inducing", "gp_iterations",
@@ -64,6 +77,21 @@ class Options(setup.MPCOptions):
         if not 0.0 < self.prob < 1.0:
             raise ValueError(f"{path}.prob: must be in (0, 1), got {self.prob!r}")
         check_fields(self, path, nonnegative=("initial_std", "exploration_std", "rounds"))
+
+
+def _nmpc_options(opts: Options) -> NMPCOptions:
+    """The MPC options GP-MPC shares with the nonlinear MPC (horizon, weights, soft constraints, IPOPT settings,
+    solver); the NMPC's others (discretization rk4, margins, fallbacks, SQP settings) keep their defaults."""
+    shared = {f.name for f in dataclasses.fields(NMPCOptions)} & {f.name for f in dataclasses.fields(opts)}
+    return NMPCOptions(**{name: getattr(opts, name) for name in shared})
+
+
+def _ancillary_gain(env, prior_params, model, Q, R):
+    """(nu, nx) the feedback of the uncertainty propagation: the prior's LQR about the goal."""
+    gain, _ = setup.goal_lqr(
+        env, prior_params, model, Q, R, PATH, field="q_diag", hint="the uncertainty propagation needs one;"
+    )
+    return gain
 
 
 class GPMPC(NonlinearMPC):
@@ -76,25 +104,12 @@ class GPMPC(NonlinearMPC):
     name = "gp_mpc"
 
     def __init__(self, env, prior_params, opts: Options, posterior: gp.GPPosterior | None):
-        # The MPC options both share (horizon, weights, soft constraints, IPOPT settings); the NMPC's others
-        # (discretization rk4, margins, fallbacks) keep their defaults.
-        shared = {f.name for f in dataclasses.fields(NMPCOptions)} & {f.name for f in dataclasses.fields(opts)}
-        nmpc = NMPCOptions(**{name: getattr(opts, name) for name in shared})
+        nmpc = _nmpc_options(opts)
         prior_fd = env.symbolic_model(prior_params, discretization=nmpc.discretization).fd
         self.gp_options = opts
         self.posterior = posterior
         super().__init__(env, prior_params, nmpc, prediction_model=learned_model(prior_fd, posterior), tightened=True)
-        # The ancillary feedback of the uncertainty propagation: the prior's LQR about the goal.
-        self.K, _ = setup.goal_lqr(
-            env,
-            prior_params,
-            self.model,
-            self.Q,
-            self.R,
-            PATH,
-            field="q_diag",
-            hint="the uncertainty propagation needs one;",
-        )
+        self.K = _ancillary_gain(env, prior_params, self.model, self.Q, self.R)
         sigma0 = opts.initial_std**2 * np.eye(self.nx)
         self.uncertainty = PlanUncertainty(self.fd, posterior, self.K, opts.prob, sigma0, self.model.g)
 
@@ -114,7 +129,65 @@ class GPMPC(NonlinearMPC):
         }
 
 
-def make_gp_mpc(env, prior_params, options=None, posterior: gp.GPPosterior | None = None) -> GPMPC:
+def gp_sqp_mpc_builder(env, prior_params, opts: Options):
+    """GP-MPC in JAX by SQP-RTI (``scg_algorithms.mpc.sqp`` with a ``Prediction``): the model ``f_prior + μ([x; u])``
+    and the margins of ``GPMPC`` (same gain ``K``, quantile and initial covariance).
+
+    The host-side set-up is done here, once; the returned ``build(posterior) -> JaxController`` does none, so it may
+    run inside ``jax.jit`` with the GP's arrays traced (``make_evaluator``): the GP is data of the compiled program,
+    not a constant of it. ``posterior``: a ``gp.GPPosterior`` (host arrays), a ``gp.SplitPosterior`` (what a jitted
+    caller passes: float64 values as float32 pairs; the GP is evaluated in float64) or ``None``: the prior alone
+    (margins from ``initial_std`` only).
+    """
+    from scg_algorithms.mpc.sqp import Prediction, sqp_mpc_builder
+
+    nmpc = _nmpc_options(opts)
+    nx, nu = env.nx, env.nu
+    model = setup.prior_model(env, prior_params, nmpc.discretization)
+    Q, R = setup.cost_weights(env, prior_params, opts.q_diag, opts.r_diag, PATH, positive_definite_r=False)
+    gain = _ancillary_gain(env, prior_params, model, Q, R)
+    z_q, sigma0 = tightening.quantile(opts.prob, nx), opts.initial_std**2 * np.eye(nx)
+    build_sqp = sqp_mpc_builder(env, prior_params, nmpc, name="gp_mpc", adaptive_rho=True)
+
+    def build(posterior: gp.GPPosterior | gp.SplitPosterior | None) -> JaxController:
+        if isinstance(posterior, gp.GPPosterior):
+            posterior = gp.split_posterior(posterior)
+        if posterior is not None and (posterior.hi.num_inputs != nx + nu or posterior.hi.num_outputs != nx):
+            raise ValueError(
+                f"gp: expected a GP from [x; u] ({nx + nu} inputs) to the state ({nx} outputs), got "
+                f"{posterior.hi.num_inputs} inputs and {posterior.hi.num_outputs} outputs"
+            )
+
+        def mean(x, u):
+            if posterior is None:
+                return jnp.zeros_like(x)
+            # hi + lo: the float32 GP with x64 off, the float64 one with it on.
+            exact = jax.tree.map(lambda h, lo: h.astype(x.dtype) + lo.astype(x.dtype), posterior.hi, posterior.lo)
+            return gp.predict(exact, jnp.concatenate([x, u]))[0]
+
+        def variance(x, u):
+            if posterior is None:
+                return jnp.zeros_like(x)
+            # Float64 inside: the float32 variance of a GP pinned down by its data is mostly round-off (on the paper
+            # cart-pole's GP: errors of 1e-2 on variances of at most 5e-4), and the margins with it. The float32
+            # mean is good to 5e-5 of the largest target there.
+            return gp.predict_split(posterior, jnp.concatenate([x, u]))
+
+        with_model = posterior is not None or opts.initial_std > 0
+        controller = build_sqp(Prediction(mean, variance, gain, z_q, sigma0) if with_model else None)
+        info = {
+            **controller.info,
+            "prob": opts.prob,
+            "num_inducing": None if posterior is None else int(posterior.hi.inputs.shape[0]),
+            "kernel": opts.kernel,
+        }
+        return dataclasses.replace(controller, info=info)
+
+    build.__name__ = "gp_mpc"
+    return build
+
+
+def make_gp_mpc(env, prior_params, options=None, posterior: gp.GPPosterior | None = None) -> GPMPC | JaxController:
     """GP-MPC on the prior model ``env.symbolic_model(prior_params)`` plus the GP ``posterior``.
 
     Args:
@@ -122,8 +195,14 @@ def make_gp_mpc(env, prior_params, options=None, posterior: gp.GPPosterior | Non
             ``prior_params(env, params, 1.5)``). options: ``Options`` fields as a mapping (``controllers.gp_mpc``).
         posterior: the GP of the prior's one-step error over ``[x; u]`` (``learn`` fits it); ``None`` gives the
             prior's MPC with the same formulation (what round 0 of the learning loop evaluates).
+
+    Returns:
+        ``solver="ipopt"`` (default): a ``GPMPC`` host controller; ``"sqp_rti"``: a ``JaxController``
+        (``gp_sqp_mpc_builder``) for the jitted, batched loop.
     """
     opts = parse_options(Options, options, PATH)
+    if opts.solver == "sqp_rti":
+        return gp_sqp_mpc_builder(env, prior_params, opts)(posterior)
     return GPMPC(env, prior_params, opts, posterior)
 
 
@@ -140,7 +219,7 @@ class LearningResult(NamedTuple):
     """
 
     posterior: gp.GPPosterior | None
-    controller: GPMPC
+    controller: GPMPC | JaxController
     history: list
     data: tuple
 
@@ -156,6 +235,19 @@ def _prior_explorer(env, prior_params, opts: Options):
 def evaluation_key(seed: int):
     """The key of the episodes ``learn`` evaluates every round on (the same ones each round), for comparisons."""
     return jax.random.fold_in(jax.random.key(seed), 10_000)
+
+
+def _batched_runs(env, prior_params, opts: Options):
+    """With ``solver="sqp_rti"``: ``{"eval": fn, "collect": fn}``, ``fn(posterior, key, params) -> Evaluation`` on
+    ``eval_episodes`` and ``train_episodes`` copies, the GP an argument of the compiled loop (``make_evaluator``:
+    one compile per GP shape, no compute-time measurement); ``None`` with IPOPT."""
+    if opts.solver != "sqp_rti":
+        return None
+    build = gp_sqp_mpc_builder(env, prior_params, opts)
+    return {
+        "eval": make_evaluator(env, build, opts.eval_episodes),
+        "collect": make_evaluator(env, build, opts.train_episodes),
+    }
 
 
 def learn(env, params, prior_params, options=None, progress: Callable[[dict], None] | None = None) -> LearningResult:
@@ -174,9 +266,13 @@ def learn(env, params, prior_params, options=None, progress: Callable[[dict], No
     history, posterior = [], None
     controller = make_gp_mpc(env, prior_params, opts, None)
     collector = _prior_explorer(env, prior_params, opts)
+    run_gp_mpc = _batched_runs(env, prior_params, opts)
     for round_index in range(opts.rounds + 1):
         start = time.perf_counter()
-        run = evaluate(env, params, controller, eval_key, opts.eval_episodes, measure_time=True)
+        if run_gp_mpc is None:
+            run = evaluate(env, params, controller, eval_key, opts.eval_episodes, measure_time=True)
+        else:
+            run = run_gp_mpc["eval"](None if posterior is None else gp.split_posterior(posterior), eval_key, params)
         eval_s = time.perf_counter() - start
         entry = {
             "round": round_index,
@@ -200,7 +296,10 @@ def learn(env, params, prior_params, options=None, progress: Callable[[dict], No
                 progress(history[-1])
             break
         collect_key = jax.random.fold_in(key, round_index)
-        collected = evaluate(env, params, collector, collect_key, opts.train_episodes, measure_time=False)
+        if run_gp_mpc is None or round_index == 0:
+            collected = evaluate(env, params, collector, collect_key, opts.train_episodes, measure_time=False)
+        else:
+            collected = run_gp_mpc["collect"](gp.split_posterior(posterior), collect_key, params)
         z, e = data.model_error(fd_prior, *data.transitions(collected.trajectory))
         inputs, targets = np.concatenate([inputs, z]), np.concatenate([targets, e])
         start = time.perf_counter()

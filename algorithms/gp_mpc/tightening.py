@@ -58,23 +58,42 @@ def propagate_covariance(A, B, K, model_var, sigma0) -> np.ndarray:
     return np.stack(sigmas)
 
 
-def margins(rows_x, rows_u, sigmas, K, z_q: float) -> np.ndarray:
+def propagate_covariance_scan(A, B, K, model_var, sigma0):
+    """``propagate_covariance`` in JAX (a ``lax.scan``; jit- and vmap-able), same arguments, a JAX array."""
+    import jax
+    import jax.numpy as jnp
+
+    def stage(sigma, inputs):
+        A_i, B_i, var_i = inputs
+        closed = A_i - B_i @ K
+        sigma = closed @ sigma @ closed.T + jnp.diag(var_i)
+        sigma = 0.5 * (sigma + sigma.T)
+        return sigma, sigma
+
+    sigma0 = jnp.asarray(sigma0, A.dtype)
+    _, rest = jax.lax.scan(stage, sigma0, (A, B, model_var))
+    return jnp.concatenate([sigma0[None], rest], axis=0)
+
+
+def margins(rows_x, rows_u, sigmas, K, z_q: float, xp=np):
     """Tightening of every linear row at every stage of a horizon.
 
     Args:
         rows_x: (ng, nx) and rows_u: (ng, nu): the rows ``a_x``, ``a_u`` of ``a_x x_{i+1} + a_u u_i <= b``; or
             (H, ng, nx) and (H, ng, nu), one set per stage (the Jacobians of nonlinear constraints along a plan).
         sigmas: (H + 1, nx, nx) state covariances ``Σ_0 .. Σ_H`` from ``propagate_covariance``.
-        K: (nu, nx) the ancillary gain. z_q: the quantile from ``quantile``.
+        K: (nu, nx) the ancillary gain. z_q: the quantile from ``quantile``. xp: ``numpy`` (float64 arrays) or
+            ``jax.numpy`` (traced, in the JAX GP-MPC).
 
     Returns:
         (H, ng) margins to subtract from ``b`` (or add to ``g``) at stages ``0 .. H-1``.
     """
-    sigmas, K = np.asarray(sigmas, float), np.asarray(K, float)
+    dtype = float if xp is np else sigmas.dtype
+    sigmas, K = xp.asarray(sigmas, dtype), xp.asarray(K, dtype)
     H = sigmas.shape[0] - 1
-    rows_x = np.broadcast_to(np.asarray(rows_x, float), (H, *np.shape(rows_x)[-2:]))
-    rows_u = np.broadcast_to(np.asarray(rows_u, float), (H, *np.shape(rows_u)[-2:]))
-    state_var = np.einsum("sgi,sij,sgj->sg", rows_x, sigmas[1:], rows_x)
+    rows_x = xp.broadcast_to(xp.asarray(rows_x, dtype), (H, *np.shape(rows_x)[-2:]))
+    rows_u = xp.broadcast_to(xp.asarray(rows_u, dtype), (H, *np.shape(rows_u)[-2:]))
+    state_var = xp.einsum("sgi,sij,sgj->sg", rows_x, sigmas[1:], rows_x)
     input_rows = rows_u @ K  # a_uᵀ K, per stage
-    input_var = np.einsum("sgi,sij,sgj->sg", input_rows, sigmas[:-1], input_rows)
-    return z_q * (np.sqrt(np.maximum(state_var, 0.0)) + np.sqrt(np.maximum(input_var, 0.0)))
+    input_var = xp.einsum("sgi,sij,sgj->sg", input_rows, sigmas[:-1], input_rows)
+    return z_q * (xp.sqrt(xp.maximum(state_var, 0.0)) + xp.sqrt(xp.maximum(input_var, 0.0)))

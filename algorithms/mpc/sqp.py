@@ -29,6 +29,11 @@ merit_weight``), or by the smallest when none does.
   Without a plan (the first step) it iterates as ``sqp`` does, from the measured state held and the equilibrium
   input.
 
+**A learned model** (GP-MPC, ``scg_algorithms.gp_mpc``): ``Prediction`` adds a model error's mean to ``f_d`` and
+tightens every env constraint row at every stage by a margin from its variance, propagated along the plan about to be
+linearised (the CasADi GP-MPC's ``tightening``, in JAX). ``sqp_mpc_builder`` does the host-side set-up once, so the
+controller can be built inside ``jax.jit`` from a traced model (one compile per GP size).
+
 **Failure**: a QP that is infeasible, non-finite, or whose plan violates a hard row by more than
 ``fallback_tol`` moves nothing; when the very first iteration fails, the input is the shifted previous plan's
 (or the equilibrium input without one), clipped to the box. ``SQPState.num_failures`` counts those steps.
@@ -51,6 +56,25 @@ from scg_jax import constraints as constraints_lib
 from scg_jax.backends import jax_backend
 
 LINE_SEARCH_STEPS = 8  # a = 1, 1/2, ..., 2^-7
+
+
+class Prediction(NamedTuple):
+    """A learned correction of the prior's step and the constraint tightening its uncertainty brings (GP-MPC).
+
+    Attributes:
+        mean: ``mean(x (nx,), u (nu,)) -> (nx,)``, the mean of the prior's one-step error, added to ``f_d``.
+        variance: ``variance(x, u) -> (nx,)``, its variance per state entry. Both may close over traced arrays (a
+            GP's data), so one compiled program serves every GP of the same shape.
+        K: (nu, nx) the ancillary gain of the covariance propagation (``δu = -K δx``).
+        z_q: the chance-constraint quantile (``scg_algorithms.gp_mpc.tightening.quantile``).
+        sigma0: (nx, nx) covariance of the initial state.
+    """
+
+    mean: Any
+    variance: Any
+    K: Any
+    z_q: Any
+    sigma0: Any
 
 
 class SQPState(NamedTuple):
@@ -76,11 +100,12 @@ class SQPState(NamedTuple):
 def _input_rows(env, prior_params, u_low, u_high, margin):
     """Split the env's constraint rows: those on one input only tighten ``(u_low, u_high)``; the others are kept.
 
-    Returns ``(u_low, u_high, keep)`` with ``keep`` the indices of the general rows. A row counts as a box row when
-    its Jacobian has no state part and one input entry, the same at two random points (a linear row)."""
+    Returns ``(u_low, u_high, keep, box_rows)`` with ``keep`` the indices of the general rows and ``box_rows`` a
+    ``(row, input, a, value0)`` tuple per box row (``a u_input + value0 <= 0``). A row counts as a box row when its
+    Jacobian has no state part and one input entry, the same at two random points (a linear row)."""
     specs, values = env.constraint_specs, prior_params.constraints
     if not specs:
-        return u_low, u_high, np.zeros(0, int)
+        return u_low, u_high, np.zeros(0, int), []
     g = lambda x, u: constraints_lib.evaluate_all(specs, values, x, u, jax_backend)  # noqa: E731
     rng = np.random.default_rng(0)
     with jax.enable_x64(True):
@@ -90,7 +115,7 @@ def _input_rows(env, prior_params, u_low, u_high, margin):
         ]
         value0 = np.asarray(g(jnp.zeros(env.nx), jnp.zeros(env.nu)))
     (Jx, Ju), (Jx2, Ju2) = jac
-    u_low, u_high, keep = u_low.copy(), u_high.copy(), []
+    u_low, u_high, keep, box_rows = u_low.copy(), u_high.copy(), [], []
     for row in range(value0.shape[0]):
         inputs = np.flatnonzero(Ju[row])
         linear = np.allclose(Jx[row], Jx2[row]) and np.allclose(Ju[row], Ju2[row])
@@ -101,24 +126,83 @@ def _input_rows(env, prior_params, u_low, u_high, margin):
                 u_high[i] = min(u_high[i], bound)
             else:
                 u_low[i] = max(u_low[i], bound)
+            box_rows.append((row, i, float(a), float(value0[row])))
         else:
             keep.append(row)
-    return u_low, u_high, np.asarray(keep, int)
+    return u_low, u_high, np.asarray(keep, int), box_rows
 
 
-def make_sqp_mpc(env, prior_params, opts) -> JaxController:
-    """Nonlinear MPC by SQP (``opts.solver == "sqp"``) or SQP-RTI (``"sqp_rti"``) in JAX (see the module doc).
+def make_sqp_mpc(
+    env, prior_params, opts, prediction: Prediction | None = None, name: str = "nonlinear_mpc"
+) -> JaxController:
+    """Nonlinear MPC by SQP (``opts.solver == "sqp"``) or SQP-RTI (``"sqp_rti"``) in JAX (see the module doc):
+    ``sqp_mpc_builder(env, prior_params, opts, name)(prediction)``."""
+    return sqp_mpc_builder(env, prior_params, opts, name)(prediction)
+
+
+class _Setup(NamedTuple):
+    """What ``sqp_mpc_builder`` computes once on the host: sizes, the QP's fixed parts (float arrays of the default
+    dtype), the constraint rows and the solver's layout and settings."""
+
+    env: Any
+    opts: Any
+    layout: Any
+    settings: Any
+    horizon: int
+    m: int  # general constraint rows kept in the QP
+    soft: bool
+    margin: float
+    keep: Any  # (m,) indices of the general rows among the env's
+    box_rows: list  # (row, input, a, value0) per input-box row
+    num_env_rows: int
+    Qs: Any  # (H, nx, nx): Q at every stage but the last, P there
+    Rs: Any  # (H, nu, nu)
+    r_vec: Any  # (H, nu): -R u_eq
+    Ks: Any  # (H, nu, nx) pre-stabilising gain
+    box: tuple  # (H, nu) input bounds, low and high
+    u_eq: Any
+    u_low: Any
+    u_high: Any
+    prior_step: Any  # prior_step(x, u) -> x+, the prior's discrete model
+    g_all: Any  # g_all(x, u) -> (num_env_rows,) every env constraint row
+    g_rows: Any  # g_rows(x, u) -> (m,) the kept rows plus the margin
+
+
+class _Model(NamedTuple):
+    """A ``_Setup`` with the prediction model of one controller (``None``: the prior alone)."""
+
+    setup: _Setup
+    prediction: Prediction | None
+
+    def step(self, x, u):
+        s = self.setup
+        return s.prior_step(x, u) if self.prediction is None else s.prior_step(x, u) + self.prediction.mean(x, u)
+
+
+def sqp_mpc_builder(env, prior_params, opts, name: str = "nonlinear_mpc", adaptive_rho: bool = False):
+    """The host-side set-up of ``make_sqp_mpc`` (weights, terminal weight, constraint rows, ADMM step size), done
+    once; the ``build`` it returns makes the controller from a ``prediction`` without host work, so it may run inside
+    ``jax.jit`` with a traced ``prediction`` (``scg_algorithms.evaluation.make_evaluator``: one compile per shape).
 
     Args:
         env: the environment. prior_params: unbatched ``EnvParams`` of the model. opts: the parsed
             ``scg_algorithms.mpc.nonlinear.Options``.
+        name: the controller's name. adaptive_rho: adapt the ADMM step size (``structured.Settings``) instead of
+            keeping the template's: GP-MPC needs it, its margins change the QP from step to step.
+        ``build``'s ``prediction``: ``None`` (the prior's ``f_d``), or a ``Prediction``: the model is then
+            ``f_d + error mean`` and every env constraint row is tightened at each stage by the margin of
+            ``Prediction``'s variance propagated along the plan being linearised (``plan_margins``, computed once
+            per control step, as the CasADi GP-MPC computes its margins along its warm start). A box row's margin
+            tightens that stage's input
+            box (a stage whose box the margins would empty keeps the midpoint of its tightened bounds).
 
     Returns:
-        A ``JaxController`` named ``"nonlinear_mpc"``; ``act`` returns ``(u (nu,) N, SQPState)``. ``info``: ``solver``,
-        ``horizon``, ``P``, ``K`` (the pre-stabilising gain), ``u_low``/``u_high`` (the input box),
-        ``status_names``.
+        ``build(prediction) -> JaxController``; ``act`` returns ``(u (nu,) N, SQPState)``. ``info``: ``solver``,
+        ``horizon``, ``P``, ``K`` (the pre-stabilising gain), ``u_low``/``u_high`` (the input box), ``status_names``,
+        and ``plan_margins(x_plan (H + 1, nx), u_plan (H, nu)) -> (H, ng)``, each env constraint row's margin per stage
+        (zero without a ``Prediction``).
     """
-    path = "controllers.nonlinear_mpc"
+    path = f"controllers.{name}"
     H, nx, nu = opts.horizon, env.nx, env.nu
     model = setup.prior_model(env, prior_params, opts.discretization)
     Q, R = setup.cost_weights(env, prior_params, opts.q_diag, opts.r_diag, path, positive_definite_r=False)
@@ -127,7 +211,7 @@ def make_sqp_mpc(env, prior_params, opts) -> JaxController:
     u_eq = setup.equilibrium_input(env, prior_params)
     u_low, u_high = setup.input_limits(env, prior_params)
     margin = float(opts.constraint_margin)
-    u_low, u_high, keep = _input_rows(env, prior_params, u_low, u_high, margin)
+    u_low, u_high, keep, box_rows = _input_rows(env, prior_params, u_low, u_high, margin)
     m = int(keep.size)
     soft = bool(opts.soft_constraints) and m > 0
     layout = structured.Layout(
@@ -141,20 +225,15 @@ def make_sqp_mpc(env, prior_params, opts) -> JaxController:
         l1=0.5 * opts.soft_penalty if soft else 0.0,
         l2=opts.soft_penalty if soft else 0.0,
     )
-    step_fn = setup.prior_step_fn(env, prior_params, opts.discretization)
     specs, values = env.constraint_specs, prior_params.constraints
 
-    def g_rows(x, u):
-        return constraints_lib.evaluate_all(specs, values, x, u, jax_backend)[keep] + margin
+    def g_all(x, u):
+        return constraints_lib.evaluate_all(specs, values, x, u, jax_backend)
 
-    dtype = jnp.zeros(()).dtype
-    cast = lambda a: jnp.asarray(a, dtype)  # noqa: E731
-    Qs = cast(np.stack([Q] * (H - 1) + [P]))
-    Rs = cast(np.repeat(R[None], H, axis=0))
-    r_vec = cast(np.tile(-(R @ u_eq), (H, 1)))
-    Ks = cast(np.repeat(K[None], H, axis=0))
-    box = (cast(np.tile(u_low, (H, 1))), cast(np.tile(u_high, (H, 1))))
-    u_eq_j, u_low_j, u_high_j = cast(u_eq), cast(u_low), cast(u_high)
+    def g_rows(x, u):
+        return g_all(x, u)[keep] + margin
+
+    cast = lambda a: jnp.asarray(a, jnp.zeros(()).dtype)  # noqa: E731
     goal = np.asarray(prior_params.goal, dtype=np.float64).reshape(nx)
     template = _template(layout, model, goal, u_eq, K, Q, R, P, u_low, u_high, g_rows if m else None)
     settings = structured.Settings(
@@ -165,127 +244,34 @@ def make_sqp_mpc(env, prior_params, opts) -> JaxController:
         rho=structured.suggested_rho(layout, template),
         # A step size that adapts costs a Cholesky per check and copy under vmap (lax.cond runs both branches):
         # fixed at the template's, an SQP-RTI step of 1,024 2D quadrotors took 0.59 ms per copy instead of 1.16.
-        adaptive_rho=False,
+        # GP-MPC's margins close most of the cart-pole's input box late in the horizon: with the template's step size
+        # float32 ADMM then ran into its cap at most steps and rejected a third of them (RMSE 0.276 against 0.164).
+        adaptive_rho=adaptive_rho,
     )
-    rti = opts.solver == "sqp_rti"
-    max_iter = opts.sqp_max_iter
-
-    def linearize(x_bar, u_bar):
-        """The QP of the plan ``(x_bar (H + 1, nx), u_bar (H, nu))``."""
-        jac = jax.vmap(jax.jacfwd(step_fn, argnums=(0, 1)))
-        A, B = jac(x_bar[:-1], u_bar)
-        f = jax.vmap(step_fn)(x_bar[:-1], u_bar)
-        c = f - jnp.einsum("kxy,ky->kx", A, x_bar[:-1]) - jnp.einsum("kxu,ku->kx", B, u_bar)
-        if m:
-            C, D = jax.vmap(jax.jacfwd(g_rows, argnums=(0, 1)))(x_bar[1:], u_bar)
-            g0 = jax.vmap(g_rows)(x_bar[1:], u_bar)
-            high = -g0 + jnp.einsum("kmx,kx->km", C, x_bar[1:]) + jnp.einsum("kmu,ku->km", D, u_bar)
-        else:
-            C, D, high = jnp.zeros((H, 0, nx), dtype), jnp.zeros((H, 0, nu), dtype), jnp.zeros((H, 0), dtype)
-        empty = jnp.zeros((H, 0), dtype)
-        return structured.HorizonQP(
-            A, B, c, Ks, Qs, None, Rs, r_vec, *box, empty, empty, C, D, -jnp.inf * jnp.ones_like(high), high
-        )
-
-    def merit(x, u, x0, window):
-        dx = x[1:] - window[1:]
-        du = u - u_eq_j
-        J = 0.5 * jnp.einsum("kx,kxy,ky->", dx, Qs, dx) + 0.5 * jnp.einsum("ku,kuv,kv->", du, Rs, du)
-        defects = jnp.sum(jnp.abs(x[1:] - jax.vmap(step_fn)(x[:-1], u))) + jnp.sum(jnp.abs(x[0] - x0))
-        violation = jnp.sum(jnp.maximum(jax.vmap(g_rows)(x[1:], u), 0.0)) if (m and not soft) else 0.0
-        return J + opts.merit_weight * (defects + violation)
-
-    def iteration(x0, window, x_bar, u_bar, warm, full_step):
-        qp = linearize(x_bar, u_bar)
-        qp = qp._replace(q=-jnp.einsum("kxy,ky->kx", Qs, window[1:]))
-        sol = structured.solve(layout, qp, x0, warm, settings)
-        ok = (sol.status == structured.CONVERGED) | (sol.status == structured.MAX_ITERATIONS)
-        ok = ok & (sol.violation <= opts.fallback_tol) & jnp.all(jnp.isfinite(sol.u)) & jnp.all(jnp.isfinite(sol.x))
-        base = merit(x_bar, u_bar, x0, window)
-        fractions = 0.5 ** jnp.arange(LINE_SEARCH_STEPS, dtype=dtype)
-
-        def trial(a):
-            return merit(x_bar + a * (sol.x - x_bar), u_bar + a * (sol.u - u_bar), x0, window)
-
-        merits = jax.vmap(trial)(fractions)
-        # Round-off of the merit (float32: defects of 1e-7 m weighed by merit_weight) must not reject a step.
-        better = merits <= base + 8 * jnp.finfo(dtype).eps * jnp.abs(base)
-        a = jnp.where(jnp.any(better), fractions[jnp.argmax(better)], fractions[-1])
-        a = jnp.where(ok, jnp.where(full_step, 1.0, a), 0.0)
-        x_new = x_bar + a * (sol.x - x_bar)
-        u_new = jnp.clip(u_bar + a * (sol.u - u_bar), u_low_j, u_high_j)
-        change = jnp.max(jnp.abs(u_new - u_bar))
-        return x_new, u_new, jnp.where(ok, 1, 0), sol, change
-
-    def shifted(state: SQPState, x0, moved):
-        index = jnp.minimum(jnp.arange(H) + moved, H - 1)
-        u = state.u_plan[index]
-        x = state.x_plan[jnp.minimum(jnp.arange(H + 1) + moved, H)]
-
-        def extend(x_prev, k):
-            x_next = jnp.where(k + moved >= H, step_fn(x_prev, u[k]), x[k + 1])
-            return x_next, x_next
-
-        _, rest = lax.scan(extend, x0, jnp.arange(H))
-        return jnp.concatenate([x0[None], rest], axis=0), u
-
-    def reset(key, reference):
-        zeros = jnp.zeros(layout.num_dense, dtype)
-        return SQPState(
-            x_plan=jnp.zeros((H + 1, nx), dtype),
-            u_plan=jnp.tile(u_eq_j, (H, 1)),
-            warm=structured.Warm(zeros, zeros, jnp.zeros((), dtype)),
-            plan_step=jnp.asarray(-1, jnp.int32),
-            status=jnp.zeros((), jnp.int32),
-            iterations=jnp.zeros((), jnp.int32),
-            qp_iterations=jnp.zeros((), jnp.int32),
-            num_failures=jnp.zeros((), jnp.int32),
-        )
-
-    def act(ctrl_state: SQPState, obs, step, reference):
-        x0 = jnp.asarray(state_from_obs(env, obs), dtype)
-        x_ref = jnp.asarray(reference.x_ref, dtype)
-        window = x_ref[jnp.minimum(step + jnp.arange(H + 1), x_ref.shape[0] - 1)]
-        moved = step - ctrl_state.plan_step
-        have_plan = (ctrl_state.plan_step >= 0) & (moved >= 1) & (moved <= H)
-        x_shift, u_shift = shifted(ctrl_state, x0, jnp.clip(moved, 1, H))
-        x_bar = jnp.where(have_plan, x_shift, jnp.tile(x0, (H + 1, 1)))
-        u_bar = jnp.where(have_plan, u_shift, jnp.tile(u_eq_j, (H, 1)))
-        warm = jax.tree.map(
-            lambda a, b: jnp.where(have_plan, a, b),
-            structured.shift(layout, ctrl_state.warm, jnp.clip(moved, 1, H)),
-            reset(None, None).warm,
-        )
-        cap = jnp.where(have_plan, 1, max_iter) if rti else max_iter
-
-        def cond(carry):
-            *_, it, change, ok = carry
-            return (it < cap) & (change > opts.sqp_tol) & ok
-
-        def body(carry):
-            x, u, warm, status, qp_it, first_ok, it, _, _ = carry
-            x, u, ok, sol, change = iteration(x0, window, x, u, warm, rti & have_plan)
-            first_ok = jnp.where(it == 0, ok == 1, first_ok)
-            warm = jax.tree.map(lambda a, b: jnp.where(ok == 1, a, b), sol.warm, warm)
-            return x, u, warm, sol.status, qp_it + sol.iterations, first_ok, it + 1, change, ok == 1
-
-        init = (x_bar, u_bar, warm, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.ones((), bool))
-        init = (*init, jnp.zeros((), jnp.int32), jnp.asarray(jnp.inf, dtype), jnp.ones((), bool))
-        x, u, warm, status, qp_it, first_ok, it, _, _ = lax.while_loop(cond, body, init)
-        u_apply = jnp.clip(jnp.where(jnp.all(jnp.isfinite(u[0])), u[0], u_eq_j), u_low_j, u_high_j)
-        x = jnp.where(jnp.isfinite(x), x, 0.0)
-        new_state = SQPState(
-            x_plan=x.at[0].set(x0),
-            u_plan=u,
-            warm=warm,
-            plan_step=jnp.asarray(step, jnp.int32),
-            status=status.astype(jnp.int32),
-            iterations=it,
-            qp_iterations=qp_it,
-            num_failures=ctrl_state.num_failures + (~first_ok).astype(jnp.int32),
-        )
-        return u_apply, new_state
-
+    fixed = _Setup(
+        env=env,
+        opts=opts,
+        layout=layout,
+        settings=settings,
+        horizon=H,
+        m=m,
+        soft=soft,
+        margin=margin,
+        keep=keep,
+        box_rows=box_rows,
+        num_env_rows=m + len(box_rows),
+        Qs=cast(np.stack([Q] * (H - 1) + [P])),
+        Rs=cast(np.repeat(R[None], H, axis=0)),
+        r_vec=cast(np.tile(-(R @ u_eq), (H, 1))),
+        Ks=cast(np.repeat(K[None], H, axis=0)),
+        box=(cast(np.tile(u_low, (H, 1))), cast(np.tile(u_high, (H, 1)))),
+        u_eq=cast(u_eq),
+        u_low=cast(u_low),
+        u_high=cast(u_high),
+        prior_step=setup.prior_step_fn(env, prior_params, opts.discretization),
+        g_all=g_all,
+        g_rows=g_rows,
+    )
     info = {
         "solver": opts.solver,
         "horizon": H,
@@ -296,7 +282,180 @@ def make_sqp_mpc(env, prior_params, opts) -> JaxController:
         "status_names": structured.STATUS_NAMES,
         "layout": layout,
     }
-    return JaxController(name="nonlinear_mpc", reset_fn=reset, act_fn=act, info=info)
+
+    def build(prediction: Prediction | None) -> JaxController:
+        model = _Model(fixed, prediction)
+        return JaxController(
+            name=name,
+            reset_fn=lambda key, reference: _reset(fixed),
+            act_fn=lambda ctrl_state, obs, step, reference: _act(model, ctrl_state, obs, step, reference),
+            info={**info, "plan_margins": lambda x_plan, u_plan: _plan_margins(model, x_plan, u_plan)},
+        )
+
+    return build
+
+
+def _plan_margins(model: _Model, x_plan, u_plan):
+    """(H, ng) margins of the env's constraint rows at ``(x_{i+1}, u_i)`` along the plan (``tightening``)."""
+    s, prediction = model.setup, model.prediction
+    dtype = s.u_eq.dtype
+    if prediction is None or s.num_env_rows == 0:
+        return jnp.zeros((s.horizon, s.num_env_rows), dtype)
+    from scg_algorithms.gp_mpc import tightening
+
+    A, B = jax.vmap(jax.jacfwd(model.step, argnums=(0, 1)))(x_plan[:-1], u_plan)
+    var = jnp.maximum(jax.vmap(prediction.variance)(x_plan[:-1], u_plan), 0.0)
+    sigmas = tightening.propagate_covariance_scan(A, B, prediction.K, var, prediction.sigma0)
+    rows_x, rows_u = jax.vmap(jax.jacfwd(s.g_all, argnums=(0, 1)))(x_plan[1:], u_plan)
+    return tightening.margins(rows_x, rows_u, sigmas, prediction.K, prediction.z_q, xp=jnp).astype(dtype)
+
+
+def _tightened_box(s: _Setup, margins):
+    """The stages' input boxes (H, nu) with each box row's margin taken off (module doc)."""
+    low, high = s.box
+    for row, i, a, value0 in s.box_rows:
+        bound = (-s.margin - margins[:, row] - value0) / a
+        low, high = (low, high.at[:, i].min(bound)) if a > 0 else (low.at[:, i].max(bound), high)
+    empty = low > high
+    middle = 0.5 * (low + high)
+    return jnp.where(empty, middle, low), jnp.where(empty, middle, high)
+
+
+def _linearize(model: _Model, x_bar, u_bar, row_margins, stage_box):
+    """The QP of the plan ``(x_bar (H + 1, nx), u_bar (H, nu))``, the general rows tightened by ``row_margins``
+    (H, m), the inputs in ``stage_box``."""
+    s = model.setup
+    H, nx, nu, dtype = s.horizon, s.env.nx, s.env.nu, s.u_eq.dtype
+    A, B = jax.vmap(jax.jacfwd(model.step, argnums=(0, 1)))(x_bar[:-1], u_bar)
+    f = jax.vmap(model.step)(x_bar[:-1], u_bar)
+    c = f - jnp.einsum("kxy,ky->kx", A, x_bar[:-1]) - jnp.einsum("kxu,ku->kx", B, u_bar)
+    if s.m:
+        C, D = jax.vmap(jax.jacfwd(s.g_rows, argnums=(0, 1)))(x_bar[1:], u_bar)
+        g0 = jax.vmap(s.g_rows)(x_bar[1:], u_bar)
+        high = -g0 - row_margins + jnp.einsum("kmx,kx->km", C, x_bar[1:]) + jnp.einsum("kmu,ku->km", D, u_bar)
+    else:
+        C, D, high = jnp.zeros((H, 0, nx), dtype), jnp.zeros((H, 0, nu), dtype), jnp.zeros((H, 0), dtype)
+    empty = jnp.zeros((H, 0), dtype)
+    return structured.HorizonQP(
+        A, B, c, s.Ks, s.Qs, None, s.Rs, s.r_vec, *stage_box, empty, empty, C, D, -jnp.inf * jnp.ones_like(high), high
+    )
+
+
+def _merit(model: _Model, x, u, x0, window, row_margins):
+    """The line search's merit: the plan's cost plus ``merit_weight`` times its defects and (hard rows) violation."""
+    s = model.setup
+    dx = x[1:] - window[1:]
+    du = u - s.u_eq
+    J = 0.5 * jnp.einsum("kx,kxy,ky->", dx, s.Qs, dx) + 0.5 * jnp.einsum("ku,kuv,kv->", du, s.Rs, du)
+    defects = jnp.sum(jnp.abs(x[1:] - jax.vmap(model.step)(x[:-1], u))) + jnp.sum(jnp.abs(x[0] - x0))
+    violation = jnp.sum(jnp.maximum(jax.vmap(s.g_rows)(x[1:], u) + row_margins, 0.0)) if (s.m and not s.soft) else 0.0
+    return J + s.opts.merit_weight * (defects + violation)
+
+
+def _iteration(model: _Model, x0, window, x_bar, u_bar, warm, full_step, margins):
+    """One SQP iteration: the QP about ``(x_bar, u_bar)``, then a step along it chosen by the merit."""
+    s = model.setup
+    dtype = s.u_eq.dtype
+    row_margins, stage_box = margins[:, s.keep], _tightened_box(s, margins)
+    qp = _linearize(model, x_bar, u_bar, row_margins, stage_box)
+    qp = qp._replace(q=-jnp.einsum("kxy,ky->kx", s.Qs, window[1:]))
+    sol = structured.solve(s.layout, qp, x0, warm, s.settings)
+    ok = (sol.status == structured.CONVERGED) | (sol.status == structured.MAX_ITERATIONS)
+    ok = ok & (sol.violation <= s.opts.fallback_tol) & jnp.all(jnp.isfinite(sol.u)) & jnp.all(jnp.isfinite(sol.x))
+    base = _merit(model, x_bar, u_bar, x0, window, row_margins)
+    fractions = 0.5 ** jnp.arange(LINE_SEARCH_STEPS, dtype=dtype)
+
+    def trial(a):
+        return _merit(model, x_bar + a * (sol.x - x_bar), u_bar + a * (sol.u - u_bar), x0, window, row_margins)
+
+    merits = jax.vmap(trial)(fractions)
+    # Round-off of the merit (float32: defects of 1e-7 m weighed by merit_weight) must not reject a step.
+    better = merits <= base + 8 * jnp.finfo(dtype).eps * jnp.abs(base)
+    a = jnp.where(jnp.any(better), fractions[jnp.argmax(better)], fractions[-1])
+    a = jnp.where(ok, jnp.where(full_step, 1.0, a), 0.0)
+    x_new = x_bar + a * (sol.x - x_bar)
+    u_new = jnp.clip(u_bar + a * (sol.u - u_bar), s.u_low, s.u_high)
+    change = jnp.max(jnp.abs(u_new - u_bar))
+    return x_new, u_new, jnp.where(ok, 1, 0), sol, change
+
+
+def _shifted(model: _Model, state: SQPState, x0, moved):
+    """The last plan advanced by ``moved`` steps from ``x0``, its tail extended by the model under its last inputs."""
+    H = model.setup.horizon
+    index = jnp.minimum(jnp.arange(H) + moved, H - 1)
+    u = state.u_plan[index]
+    x = state.x_plan[jnp.minimum(jnp.arange(H + 1) + moved, H)]
+
+    def extend(x_prev, k):
+        x_next = jnp.where(k + moved >= H, model.step(x_prev, u[k]), x[k + 1])
+        return x_next, x_next
+
+    _, rest = lax.scan(extend, x0, jnp.arange(H))
+    return jnp.concatenate([x0[None], rest], axis=0), u
+
+
+def _reset(s: _Setup) -> SQPState:
+    dtype = s.u_eq.dtype
+    zeros = jnp.zeros(s.layout.num_dense, dtype)
+    return SQPState(
+        x_plan=jnp.zeros((s.horizon + 1, s.env.nx), dtype),
+        u_plan=jnp.tile(s.u_eq, (s.horizon, 1)),
+        warm=structured.Warm(zeros, zeros, jnp.zeros((), dtype)),
+        plan_step=jnp.asarray(-1, jnp.int32),
+        status=jnp.zeros((), jnp.int32),
+        iterations=jnp.zeros((), jnp.int32),
+        qp_iterations=jnp.zeros((), jnp.int32),
+        num_failures=jnp.zeros((), jnp.int32),
+    )
+
+
+def _act(model: _Model, ctrl_state: SQPState, obs, step, reference):
+    s = model.setup
+    H, dtype, opts = s.horizon, s.u_eq.dtype, s.opts
+    rti = opts.solver == "sqp_rti"
+    x0 = jnp.asarray(state_from_obs(s.env, obs), dtype)
+    x_ref = jnp.asarray(reference.x_ref, dtype)
+    window = x_ref[jnp.minimum(step + jnp.arange(H + 1), x_ref.shape[0] - 1)]
+    moved = step - ctrl_state.plan_step
+    have_plan = (ctrl_state.plan_step >= 0) & (moved >= 1) & (moved <= H)
+    x_shift, u_shift = _shifted(model, ctrl_state, x0, jnp.clip(moved, 1, H))
+    x_bar = jnp.where(have_plan, x_shift, jnp.tile(x0, (H + 1, 1)))
+    u_bar = jnp.where(have_plan, u_shift, jnp.tile(s.u_eq, (H, 1)))
+    warm = jax.tree.map(
+        lambda a, b: jnp.where(have_plan, a, b),
+        structured.shift(s.layout, ctrl_state.warm, jnp.clip(moved, 1, H)),
+        _reset(s).warm,
+    )
+    cap = jnp.where(have_plan, 1, opts.sqp_max_iter) if rti else opts.sqp_max_iter
+    margins = _plan_margins(model, x_bar, u_bar)  # once per step, along the plan the first QP linearises
+
+    def cond(carry):
+        *_, it, change, ok = carry
+        return (it < cap) & (change > opts.sqp_tol) & ok
+
+    def body(carry):
+        x, u, warm, status, qp_it, first_ok, it, _, _ = carry
+        x, u, ok, sol, change = _iteration(model, x0, window, x, u, warm, rti & have_plan, margins)
+        first_ok = jnp.where(it == 0, ok == 1, first_ok)
+        warm = jax.tree.map(lambda a, b: jnp.where(ok == 1, a, b), sol.warm, warm)
+        return x, u, warm, sol.status, qp_it + sol.iterations, first_ok, it + 1, change, ok == 1
+
+    init = (x_bar, u_bar, warm, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.ones((), bool))
+    init = (*init, jnp.zeros((), jnp.int32), jnp.asarray(jnp.inf, dtype), jnp.ones((), bool))
+    x, u, warm, status, qp_it, first_ok, it, _, _ = lax.while_loop(cond, body, init)
+    u_apply = jnp.clip(jnp.where(jnp.all(jnp.isfinite(u[0])), u[0], s.u_eq), s.u_low, s.u_high)
+    x = jnp.where(jnp.isfinite(x), x, 0.0)
+    new_state = SQPState(
+        x_plan=x.at[0].set(x0),
+        u_plan=u,
+        warm=warm,
+        plan_step=jnp.asarray(step, jnp.int32),
+        status=status.astype(jnp.int32),
+        iterations=it,
+        qp_iterations=qp_it,
+        num_failures=ctrl_state.num_failures + (~first_ok).astype(jnp.int32),
+    )
+    return u_apply, new_state
 
 
 def _template(layout, model, goal, u_eq, K, Q, R, P, u_low, u_high, g_rows):

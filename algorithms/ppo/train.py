@@ -299,6 +299,7 @@ def make_variant_learner(name: str, config: Config, env, variant: Variant = PLAI
         steps_per_iteration=config.batch_size,
         policy_params=lambda runner: _policy_params(parts, runner),
         make_policy=lambda policy_params: _make_policy(parts, policy_params),
+        collect=lambda runner, params: _rollout(parts, runner, params, jax.random.split(runner.key, 3)[1])[:2],
     )
 
 

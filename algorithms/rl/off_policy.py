@@ -401,5 +401,6 @@ def make_learner(name: str, config: Config, env, algorithm: Algorithm) -> tuple[
         steps_per_iteration=config.transitions_per_iteration,
         policy_params=policy_params,
         make_policy=make_policy,
+        collect=lambda state, params: _collect(parts, state, params, jax.random.split(state.key, 3)[1], True)[:2],
     )
     return learner, lambda state, params, i: _iteration(parts, state, params, i >= warmup)

@@ -76,6 +76,10 @@ class Learner(NamedTuple):
         policy_params: ``policy_params(runner_state) -> pytree``: network parameters and observation statistics.
         make_policy: ``make_policy(policy_params) -> policy(obs, key)``: the action in [-1, 1] for ``obs``
             (obs_size,) or (B, obs_size); deterministic (the mean) when ``key`` is None, sampled otherwise.
+        collect: ``collect(runner_state, params) -> (collector_state, transitions)``: the data collection of the
+            iteration ``update`` would run from ``runner_state`` alone (the env and the acting policy with the same
+            key, nothing learned: ``collector_state`` is ``update``'s new ``collector``), for profiling where an
+            iteration's time goes (``benchmarks/train.py``); None where a learner does not separate it.
     """
 
     name: str
@@ -86,6 +90,7 @@ class Learner(NamedTuple):
     steps_per_iteration: int
     policy_params: Callable
     make_policy: Callable
+    collect: Callable | None = None
 
 
 def config_dict(config) -> dict:

@@ -329,25 +329,3 @@ def intervention_metrics(correction, feasible, length, applied=None) -> dict:
         for code, kind in enumerate(APPLIED[1:], start=1):
             metrics[f"infeasible_{kind}_fraction"] = float(((applied == code) & in_episode).sum() / steps)
     return metrics
-
-
-__all__ = [
-    "APPLIED",
-    "BACKUP_CONTROLLER",
-    "BACKUP_PLAN",
-    "BEST_EFFORT",
-    "CERTIFIED",
-    "INTERVENTION_THRESHOLD",
-    "Filter",
-    "FilterInfo",
-    "FilterStats",
-    "FilteredController",
-    "FilteredState",
-    "SafetyFilter",
-    "applied_correction",
-    "check_system",
-    "filter_record",
-    "filtered",
-    "intervention_metrics",
-    "is_filtered",
-]
