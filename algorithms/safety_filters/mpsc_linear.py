@@ -127,7 +127,7 @@ class Options:
     )
     constraint_margin: float = option(0.0, "extra margin on every row that involves the state (row units)")
     regularization: float = option(
-        1e-3,
+        1e-2,
         "largest eigenvalue of the weight W of 1/2 v^T W v over v_1..v_H-1 (> 0): the plan's later inputs stay "
         "near the LQR's (W: mpsc_structured.plan_weight)",
     )
