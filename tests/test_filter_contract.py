@@ -20,15 +20,23 @@ HOST_EPISODES = 1
 CART_X, CART_THETA, QUAD_1D, QUAD_2D_Z, QUAD_2D_X, QUAD_3D_Z = range(len(C.CASES))
 
 
-def _cell(case: int, name: str, slow: bool = True):
-    return pytest.param(case, name, marks=[pytest.mark.slow] if slow else [], id=f"{C.CASES[case].label}-{name}")
+def _cell(case: int, name: str, slow: bool = True, optimized: bool = False):
+    marks = [pytest.mark.slow] if slow else []
+    if optimized:  # within a violating step or 0.01x of a bound: compiled as the benchmark that measured it
+        marks.append(pytest.mark.optimized)
+    return pytest.param(case, name, marks=marks, id=f"{C.CASES[case].label}-{name}")
 
 
 # Every cell of the matrix (6 cases x 3 filters), as benchmarks/filter_contract.py's table in docs/safety-filters.md;
-# the CBF on the issue's two cases runs in every test run, the rest are ``slow`` (CI runs them too). The measured
-# margins (violating-step share of LQR's, bound 10 %; RMSE ratio, bound 1.5x) are in MARGINS' comments.
+# the CBF on the issue's two cases runs in every test run, the rest are ``slow`` (CI runs them too). Measured margins
+# (share of LQR's violating steps, bound 10 %; RMSE ratio, bound 1.5x), JAX filters on these 16 episodes:
+#   cbf:         cart |x| 7.6 %, 1.08x; cart |theta| 0 %, 0.89x; 1D 0 %, 1.06x; 2D z 0 %, 1.49x; 2D |x| 0 %, 0.92x;
+#                3D z 0 %, 1.49x
+#   linear_mpsc: cart |x| 9.6 % (15 steps in all, 15.7 allowed), 1.44x; cart |theta| 3.1 %, 0.83x; 1D 2.2 %, 1.05x;
+#                2D z 3.4 %, 1.18x; 2D |x| 0 %, 0.97x; 3D z 2.3 %, 1.489x
+THIN = {(CART_X, "linear_mpsc"), (QUAD_3D_Z, "linear_mpsc")}
 CELLS = [
-    _cell(case, name, slow=not (name == "cbf" and case in (CART_X, QUAD_2D_Z)))
+    _cell(case, name, slow=not (name == "cbf" and case in (CART_X, QUAD_2D_Z)), optimized=(case, name) in THIN)
     for case in range(len(C.CASES))
     for name in C.FILTER_NAMES
 ]
