@@ -14,7 +14,8 @@ import pytest
 from scg_algorithms.safety_filters import contract as C
 
 EPISODES = 16  # as the benchmark table and `scg-jax eval --episodes 16` (JAX filters: compile time dominates)
-# The nonlinear MPSC runs IPOPT per copy and step on the host: one episode per cell (the benchmark's table has more).
+# The nonlinear MPSC runs IPOPT per copy and step on the host: one episode per cell (the benchmark's table has more),
+# two on the cart-pole within +-0.1 m, where LQR's first episode of one stays inside (of two: 14 violating steps each).
 HOST_EPISODES = 1
 
 CART_X, CART_THETA, QUAD_1D, QUAD_2D_Z, QUAD_2D_X, QUAD_3D_Z = range(len(C.CASES))
@@ -52,7 +53,7 @@ def _baseline(case: int, episodes: int):
 
 @pytest.mark.parametrize(("case", "name"), CELLS)
 def test_filter_keeps_the_constraint_or_refuses(case, name):
-    episodes = HOST_EPISODES if name == "nonlinear_mpsc" else EPISODES
+    episodes = (2 if case == CART_X else HOST_EPISODES) if name == "nonlinear_mpsc" else EPISODES
     env, params, controller, baseline = _baseline(case, episodes)
     assert baseline.summary["constraint_violation_steps"] >= 2.0  # LQR alone crosses the constraint
     outcome = C.run_filter(C.CASES[case], name, env, params, controller, baseline, episodes)
