@@ -22,6 +22,7 @@ Compute time per step (``compute_time_per_step_s``) is the controller's time per
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Mapping
 from typing import Any, NamedTuple
@@ -88,6 +89,7 @@ class Evaluation(NamedTuple):
     timing: dict
 
 
+@functools.partial(jax.jit, static_argnums=1)  # one program per count, not one per operation and count
 def _copy_keys(key, num_episodes: int):
     keys = jax.random.split(key, num_episodes)
     both = jax.vmap(jax.random.split)(keys)

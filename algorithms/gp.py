@@ -252,6 +252,8 @@ def exact_posterior(inputs, targets, hp: GPHyperparams, kernel: str = "rbf") -> 
         return to_numpy(_exact(jnp.asarray(x), jnp.asarray(y), jax.tree.map(jnp.asarray, hp), kernel))
 
 
+# Jitted: one compiled program per data shape, where op by op would compile each of its operations apart.
+@functools.partial(jax.jit, static_argnames=("kernel",))
 def _exact(x, y, hp, kernel):
     def one(ls, s2, noise, yi):
         k = kernel_matrix(x, x, ls, s2, kernel) + noise * jnp.eye(x.shape[0])
@@ -281,6 +283,7 @@ def fitc_posterior(
         )
 
 
+@functools.partial(jax.jit, static_argnames=("kernel", "jitter"))
 def _fitc(x, y, z, hp, kernel, jitter):
     num_inducing = z.shape[0]
 

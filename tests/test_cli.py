@@ -170,10 +170,7 @@ def test_train_writes_a_policy_that_eval_and_compare_run(tmp_path, capsys):
     assert main(["eval", *_EVAL_ENV, "--controller", str(out), "--out", str(record_path)]) == 0
     record = json.loads(record_path.read_text())
     assert record["controller"] == "ppo" and record["length"] <= 50 and np.isfinite(record["rmse"])
-    # Same seed, same policy: a second run writes byte-identical policy parameters.
-    again = tmp_path / "again"
-    assert main([*args[:-4], "--out", str(again), "--eval-episodes", "4"]) == 0
-    assert (again / "policy.msgpack").read_bytes() == (out / "policy.msgpack").read_bytes()
+    # (Same seed, same policy bytes: tests/test_train_run.py and tests/test_rl_common.py, on the library that runs it.)
     assert main(["compare", *_EVAL_ENV, "--controllers", f"lqr,{out}"]) == 0
     assert "ppo" in capsys.readouterr().out
 

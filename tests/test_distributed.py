@@ -56,7 +56,8 @@ def _launch_process(arguments: list[str], port: int, process_id: int) -> subproc
         "SCG_JAX_LOCAL_DEVICES": "2",
         "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
     }
-    env.pop("XLA_FLAGS", None)
+    # A simulated device count in XLA_FLAGS would fight SCG_JAX_LOCAL_DEVICES; the test run's other flags stay.
+    env["XLA_FLAGS"] = " ".join(flag for flag in env.get("XLA_FLAGS", "").split() if "device_count" not in flag)
     command = [
         sys.executable, "-m", "scg_cli", *arguments,
         "--distributed", "--coordinator", f"127.0.0.1:{port}", "--num-processes", "2", "--process-id", str(process_id),

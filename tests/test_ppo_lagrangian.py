@@ -1,5 +1,6 @@
 """PPO-Lagrangian: the multiplier update, the combined advantage and the cost advantage on worked numbers; bad
-input; and, on the constraint task, exactly PPO's parameters while the multiplier stays 0, but not otherwise."""
+input; and, on the constraint task, PPO's parameters (to float32 rounding) while the multiplier stays 0, but not
+otherwise."""
 
 import jax
 import jax.numpy as jnp
@@ -105,6 +106,7 @@ def _runner(learner, env_params):
             runner = runner._replace(aux={**runner.aux, "multiplier": jnp.asarray(multiplier, jnp.float32)})
         return iterate(runner)
 
+    run.init = init
     return run
 
 
@@ -116,28 +118,35 @@ def constraint_runs():
     # lambda_lr (1 - J_c) an iteration, floored at 0, so from 0 it stays 0 and from 5 it falls by that. Both runs
     # share one compiled program (the multiplier is a runner-state value); PPO is the second.
     env, params = make_from_config(load_config(CONFIG, CHEAP))
-    plain = _runner(ppo.make_learner(TINY, env), params)()
+    run_ppo = _runner(ppo.make_learner(TINY, env), params)
     sgd = _runner(make_learner({**TINY, "cost_limit": 1.0, "lambda_lr": 0.5, "lambda_optimizer": "sgd"}, env), params)
-    return plain, sgd(multiplier=0.0), sgd(multiplier=5.0)
+    return run_ppo(), sgd(multiplier=0.0), sgd(multiplier=5.0), run_ppo.init(jax.random.key(0), params)
 
 
-def test_with_the_multiplier_at_zero_learning_is_exactly_ppo(constraint_runs):
-    (plain_runner, plain_metrics), (runner, metrics), _ = constraint_runs
+def _max_difference(a, b) -> float:
+    return max(float(jnp.max(jnp.abs(x - y))) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))
+
+
+def test_with_the_multiplier_at_zero_learning_is_ppo(constraint_runs):
+    (plain_runner, plain_metrics), (runner, metrics), _, initial = constraint_runs
     assert float(jnp.max(metrics["cost_estimate"])) > 0.05  # costs were incurred, the cost critic trained
     np.testing.assert_array_equal(metrics["lagrange_multiplier"], 0.0)
-    for a, b in zip(jax.tree.leaves(plain_runner.params), jax.tree.leaves(runner.params), strict=True):
-        np.testing.assert_array_equal(a, b)
-    np.testing.assert_array_equal(plain_metrics["episode_return"], metrics["episode_return"])
+    # PPO and PPO-Lagrangian are two compiled programs, which XLA may round in different orders: the parameters
+    # agree to float32 rounding (measured 5e-6 of how far training moved them), not bit for bit. A cost term that
+    # leaked into the update at lambda = 0 moves them by about as much as training does (the active run below).
+    moved = _max_difference(plain_runner.params, initial.params)
+    assert _max_difference(plain_runner.params, runner.params) < 1e-4 * moved
+    np.testing.assert_allclose(plain_metrics["episode_return"], metrics["episode_return"], rtol=1e-5)
     assert np.all(np.isfinite(metrics["cost_value_loss"]))
 
 
 def test_an_active_multiplier_follows_the_update_and_changes_learning(constraint_runs):
-    (plain_runner, _), _, (runner, metrics) = constraint_runs
+    (plain_runner, _), _, (runner, metrics), initial = constraint_runs
     lam, cost = np.asarray(metrics["lagrange_multiplier"]), np.asarray(metrics["cost_estimate"])
     # lambda_k = max(0, lambda_{k-1} + 0.5 (J_c,k - 1)) from 5 (the update comes before each iteration's SGD epochs).
     expected = 5.0 + np.cumsum(0.5 * (cost - 1.0))
     np.testing.assert_allclose(lam, expected, rtol=1e-5)
     assert np.all(lam > 0)
-    actor_plain = jax.tree.leaves(plain_runner.params["actor"])
-    actor = jax.tree.leaves(runner.params["actor"])
-    assert max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(actor_plain, actor, strict=True)) > 1e-6
+    # The multiplier changes learning by as much as training moves the policy (measured 2x), far above rounding.
+    moved = _max_difference(plain_runner.params, initial.params)
+    assert _max_difference(plain_runner.params["actor"], runner.params["actor"]) > 0.2 * moved

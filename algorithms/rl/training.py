@@ -121,20 +121,21 @@ def find_obs_stats(policy_params) -> RunningStats | None:
     return found[0] if found else None
 
 
-def _make_chunk_runner(learner: Learner, max_chunk: int, state_shardings=None, mesh=None):
+def _make_chunk_runner(update: Callable, max_chunk: int, state_shardings=None, mesh=None):
     """``run(runner_state, params, n) -> (runner_state, metrics (max_chunk, ...) per key)``: n iterations, n traced.
 
+    ``update`` is the learner's ``update`` under ``jax.jit``, so the metric shapes and the loop body share one trace.
     With a ``mesh`` the runner state keeps the layout ``state_shardings`` (``scg_algorithms.rl.sharding``)
     from chunk to chunk, and params and metrics are replicated."""
 
     def run(runner_state, params, n):
-        metric_shapes = jax.eval_shape(lambda s: learner.update(s, params)[1], runner_state)
+        metric_shapes = jax.eval_shape(lambda s: update(s, params)[1], runner_state)
         # Each metric keeps its dtype and structure (a Count stays two exact uint32 words).
         buffer = jax.tree.map(lambda shape: jnp.zeros((max_chunk, *shape.shape), shape.dtype), metric_shapes)
 
         def body(i, carry):
             state, buffer = carry
-            state, metrics = learner.update(state, params)
+            state, metrics = update(state, params)
             buffer = jax.tree.map(lambda stored, value: stored.at[i].set(value), buffer, metrics)
             return state, buffer
 
@@ -361,6 +362,10 @@ class _Run:
     compile_s: float = 0.0
     run_start: float = 0.0  # perf_counter() after compiling
 
+    def __post_init__(self):
+        # Tracing a learner's update takes seconds: progress.csv's columns and the chunk runner share this one trace.
+        self.update = jax.jit(self.learner.update)
+
     @property
     def total(self) -> int:
         return int(self.learner.num_iterations)
@@ -459,7 +464,9 @@ def run_training(
     run = _Run(learner, env, params, Path(out_dir), config_dict(learner.config), env_config, mesh, distributed, main,
                progress if main else SILENT, csv, start)  # fmt: skip
     _start_run(run, key, resume, overwrite)
-    max_chunk = min(run.total, int(chunk) if chunk is not None else 1000)
+    # Not bounded by the budget: a run resumed with a larger budget compiles the same chunk program as one run in one
+    # go, so it repeats it bit for bit (two programs may round differently).
+    max_chunk = int(chunk) if chunk is not None else 1000
     compiled = _compile(run, max_chunk)
     _open_csv(run)
     with running(run.progress, Task(learner.name, run.total, run.iteration, "iteration")):
@@ -549,7 +556,7 @@ def _compile(run: _Run, max_chunk: int):
     try:
         with running(run.progress, Task(f"compiling {run.learner.name}")):
             shardings = None if run.mesh is None else sharding.shardings_of(run.runner_state)
-            runner = _make_chunk_runner(run.learner, max_chunk, shardings, run.mesh)
+            runner = _make_chunk_runner(run.update, max_chunk, shardings, run.mesh)
             compiled = runner.lower(run.runner_state, run.params, _count(1, run.distributed)).compile()
     except KeyboardInterrupt:  # Ctrl-C while compiling: nothing new to save
         raise run.interrupted(run.iteration) from None
@@ -561,7 +568,7 @@ def _open_csv(run: _Run) -> None:
     """``progress.csv``'s header and, on a resume, the rows up to the checkpoint (a later chunk's are dropped)."""
     if not run.csv:
         return
-    metrics = jax.eval_shape(lambda s: run.learner.update(s, run.params)[1], run.runner_state)
+    metrics = jax.eval_shape(lambda s: run.update(s, run.params)[1], run.runner_state)
     run.names = sorted(metrics.keys() - {"env_steps"})
     header = ["iteration", "env_steps", "wall_time_s", *run.names]
     resumed = run.resumed_from is not None and run.main
