@@ -96,6 +96,12 @@ CASADI_SOLVERS = ("qpoases", "osqp")
 QPAX_OBJECTIVE_SCALE = 1e3  # the objective's factor in the qpax solve (see certify)
 
 
+SOLVER_DOC = (
+    "QP solver: scg_algorithms.mpc.structured (prepared once, warm-started, polished), the fixed-iteration "
+    "shared-factorisation ADMM of mpsc_admm, or qpax's interior point"
+)
+
+
 @dataclasses.dataclass(frozen=True)
 class Options:
     """Options of the linear MPSC (``safety_filters.linear_mpsc``)."""
@@ -131,12 +137,7 @@ class Options:
         "largest eigenvalue of the weight W of 1/2 v^T W v over v_1..v_H-1 (> 0): the plan's later inputs stay "
         "near the LQR's (W: mpsc_structured.plan_weight)",
     )
-    solver: str = option(
-        "structured",
-        "QP solver: scg_algorithms.mpc.structured (prepared once, warm-started, polished), the fixed-iteration "
-        "shared-factorisation ADMM of mpsc_admm, or qpax's interior point",
-        choices=SOLVERS,
-    )
+    solver: str = option("structured", SOLVER_DOC, choices=SOLVERS)
     structured_max_iter: int = option(1000, "structured: ADMM iterations at most per step (stops once converged)")
     structured_tol: float = option(1e-5, "structured: absolute and relative residual tolerance of the scaled QP")
     structured_check_every: int = option(10, "structured: iterations between residual checks and step-size updates")
