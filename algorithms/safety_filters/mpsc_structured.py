@@ -174,20 +174,21 @@ def build(problem) -> StructuredMPSC:
     # least-violating plan.
     soft = opts.violation_penalty > 0
     layout = structured.Layout(
+        num_rows=C.shape[1],  # the general rows: the constraints' and the terminal set's
         horizon=H,
         nx=nx,
         nu=nu,
         x_rows=x_rows,
-        num_rows=C.shape[1],
         soft_x=(soft,) * len(x_rows),
         soft_rows=tuple(soft and bool(np.any(C[:, i])) for i in range(C.shape[1])),
         l1=opts.violation_penalty,
     )
+    tol = opts.structured_tol  # one option for the absolute and the relative residual tolerance
     settings = structured.Settings(
         max_iterations=opts.structured_max_iter,
         check_every=opts.structured_check_every,
-        eps_abs=opts.structured_tol,
-        eps_rel=opts.structured_tol,
+        eps_abs=tol,
+        eps_rel=tol,
         polish_rounds=opts.structured_polish_rounds,
     )
     scale, _ = plan_weight(problem)
