@@ -14,46 +14,66 @@ import pytest
 from scg_algorithms.safety_filters import contract as C
 
 EPISODES = 16  # as the benchmark table and `scg-jax eval --episodes 16` (JAX filters: compile time dominates)
-# The nonlinear MPSC runs IPOPT per copy and step on the host: one 5 s episode (250 solves). Measured on it: LQR 24
-# violating steps, filtered 0 (bound 2.4); RMSE 0.0281 vs LQR's 0.0245 (bound 1.5x: 0.0368).
-HOST_EPISODES = 1
-
 CART_X, CART_THETA, QUAD_1D, QUAD_2D_Z, QUAD_2D_X, QUAD_3D_Z = range(len(C.CASES))
 
 
-def _cell(case: int, name: str, slow: bool = True):
-    return pytest.param(case, name, marks=[pytest.mark.slow] if slow else [], id=f"{C.CASES[case].label}-{name}")
+def _cell(case: int, name: str, slow: bool = True, optimized: bool = False):
+    marks = [pytest.mark.slow] if slow else []
+    if optimized:  # within a violating step or 0.01x of a bound: compiled as the benchmark that measured it
+        marks.append(pytest.mark.optimized)
+    return pytest.param(case, name, marks=marks, id=f"{C.CASES[case].label}-{name}")
 
 
-# Every case once and every filter more than once; the whole matrix (18 cells, 16 episodes for the JAX filters, most
-# of an hour on 2 busy cores) is benchmarks/filter_contract.py's table in docs/safety-filters.md, with the measured
-# misses: the linear MPSC on the cart-pole within +-0.1 m (one episode starts with no plan that holds it) and the
-# nonlinear MPSC's RMSE on the 2D quadrotor's ceiling.
+# Every cell of the matrix (6 cases x 3 filters), as benchmarks/filter_contract.py's table in docs/safety-filters.md;
+# the CBF on the issue's two cases runs in every test run, the rest are ``slow`` (CI runs them too). Measured margins
+# (share of LQR's violating steps, bound 10 %; RMSE ratio, bound 1.5x), JAX filters on these 16 episodes:
+#   cbf:         cart |x| 7.6 %, 1.08x; cart |theta| 0 %, 0.89x; 1D 0 %, 1.06x; 2D z 0 %, 1.49x; 2D |x| 0 %, 0.92x;
+#                3D z 0 %, 1.49x
+#   linear_mpsc: cart |x| 9.6 % (15 steps in all, 15.7 allowed), 1.44x; cart |theta| 3.1 %, 0.83x; 1D 2.2 %, 1.05x;
+#                2D z 3.4 %, 1.18x; 2D |x| 0 %, 0.97x; 3D z 2.3 %, 1.489x
+#   nonlinear_mpsc (the benchmark's 16 episodes on cart |x|, 2 elsewhere): cart |x| 8.9 %, 1.28x; cart |theta| 0 %,
+#                0.83x; 1D 0 %, 1.16x; 2D z 0 %, 1.14x; 2D |x| 0 %, 1.42x; 3D z refused (below). This test's own
+#                episodes for it: HOST_CELLS.
+THIN = {(CART_X, "linear_mpsc"), (QUAD_3D_Z, "linear_mpsc")}
 CELLS = [
-    _cell(CART_X, "cbf", slow=False),
-    _cell(QUAD_2D_Z, "cbf", slow=False),
-    _cell(CART_THETA, "linear_mpsc"),
-    _cell(QUAD_1D, "linear_mpsc"),
-    _cell(QUAD_1D, "nonlinear_mpsc"),
-    _cell(QUAD_2D_X, "cbf"),
-    _cell(QUAD_3D_Z, "cbf"),
+    _cell(case, name, slow=not (name == "cbf" and case in (CART_X, QUAD_2D_Z)), optimized=(case, name) in THIN)
+    for case in range(len(C.CASES))
+    for name in C.FILTER_NAMES
 ]
 
 
+# The nonlinear MPSC runs IPOPT per copy and step on the host (0.04 s per step on the cart-pole, 0.1 s on the 1D
+# quadrotor, 0.5-1 s on the 2D one): its cells run ``(episodes, seconds)``, episodes cut to the part where LQR
+# crosses the constraint (``Case.make``: the same initial states, reference and constraint, the episode ended early;
+# 2 episodes on the cart-pole |x| as LQR's first episode of one stays inside). Measured (seed 0; LQR's violating steps
+# per episode there, of the full 5 s episodes' in brackets; filtered share, bound 10 %; RMSE ratio, bound 1.5x):
+#   cart |x| 3 s: 14.0 (14.0), 0 %, 1.45x (2 s: 1.49x; 5 s: 1.446x: the 2-episode ratio is thin at any length)
+#   cart |theta| 1 s: 30.0 (176.5), 0 %, 0.87x;  1D 2 s: 26.0 (26.0), 0 %, 1.24x;  2D z 1 s: 27.0 (76.0), 0 %, 1.03x
+#   2D |x| 1 s: 3.0 (101.0), 0 %, 1.00x (LQR overshoots the box once, at the start; its later crossings, at
+#   x = -0.5 m after 2.2 s, need 3 s episodes, about 75 s of IPOPT; the benchmark's 2 full ones: 0 %, 1.42x)
+HOST_CELLS = {CART_X: (2, 3.0), CART_THETA: (2, 1.0), QUAD_1D: (2, 2.0), QUAD_2D_Z: (1, 1.0), QUAD_2D_X: (1, 1.0)}
+# Refused on the 3D quadrotor (mpsc_nonlinear.QUADROTOR_3D_REFUSAL: 0 violating steps at 2.7-3.2x LQR's RMSE, the
+# plans tilting it to brake): the cell checks the refusal against the JAX cells' baseline.
+HOST_CELLS[QUAD_3D_Z] = (EPISODES, None)
+REFUSED = {(QUAD_3D_Z, "nonlinear_mpsc")}
+
+
 @functools.cache
-def _baseline(case: int, episodes: int):
+def _baseline(case: int, episodes: int, episode_len_sec: float | None = None):
     """``(env, params, controller, evaluation)`` of LQR on the case, shared by its filters."""
-    env, params = C.CASES[case].make()
+    env, params = C.CASES[case].make(episode_len_sec)
     controller, evaluation = C.lqr_baseline(env, params, episodes)
     return env, params, controller, evaluation
 
 
 @pytest.mark.parametrize(("case", "name"), CELLS)
 def test_filter_keeps_the_constraint_or_refuses(case, name):
-    episodes = HOST_EPISODES if name == "nonlinear_mpsc" else EPISODES
-    env, params, controller, baseline = _baseline(case, episodes)
+    episodes, seconds = HOST_CELLS[case] if name == "nonlinear_mpsc" else (EPISODES, None)
+    env, params, controller, baseline = _baseline(case, episodes, seconds)
     assert baseline.summary["constraint_violation_steps"] >= 2.0  # LQR alone crosses the constraint
     outcome = C.run_filter(C.CASES[case], name, env, params, controller, baseline, episodes)
+    # The issue's two cases (cart-pole |x|, 2D circle under z) must hold; the table's one refusal is expected
+    assert (outcome.refusal is not None) == ((case, name) in REFUSED), outcome
     if outcome.refusal is not None:
         # A refusal names the filter's option path and says why (after the field, a reason of some words).
         assert f"safety_filters.{name}" in outcome.refusal and len(outcome.refusal.split(": ", 1)[-1]) > 20

@@ -39,12 +39,21 @@ class Case:
     overrides: tuple[str, ...]
 
     def make(self, episode_len_sec: float | None = None):
-        """``(env, params)`` of the case (``episode_len_sec`` shortens the episodes, s)."""
+        """``(env, params)`` of the case; ``episode_len_sec`` (s) cuts the episodes short and keeps the reference:
+        the trajectory's period stays the config's (``num_cycles`` scaled with the length), so a shorter episode is
+        the first part of the full one (the same initial states, reference and constraint)."""
         import scg_jax
 
         overrides = list(self.overrides)
         if episode_len_sec is not None:
+            if not episode_len_sec > 0:
+                raise ValueError(f"episode_len_sec: must be positive, got {episode_len_sec!r}")
+            full = scg_jax.load_config(CONFIGS / self.config, overrides).env
             overrides.append(f"env.episode_len_sec={episode_len_sec}")
+            if full.trajectory is not None:  # the period episode_len_sec / num_cycles stays the full episode's
+                overrides.append(
+                    f"env.trajectory.num_cycles={full.trajectory.num_cycles * episode_len_sec / full.episode_len_sec}"
+                )
         return scg_jax.make_from_config(scg_jax.load_config(CONFIGS / self.config, overrides))
 
 

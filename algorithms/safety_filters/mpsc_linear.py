@@ -4,8 +4,10 @@ proposed input that keeps a plan back into safety, on the linearised prior with 
 Two filters share one ``Options`` (``safety_filters.linear_mpsc``; the CasADi variant reads the same fields):
 
 - ``make_linear_mpsc`` (``"linear_mpsc"``): a JAX ``Filter``; ``certify`` is pure JAX of one copy, so the harness
-  vmaps it over thousands of copies. Its QP is solved by an ADMM with one factorisation shared by the batch
-  (``solver="admm"``, ``mpsc_admm``) or by qpax's interior point (``solver="qpax"``, per-copy factorisation).
+  vmaps it over thousands of copies inside its jitted loop. Its QP is solved by the structured horizon-QP solver
+  (``solver="structured"``, the default: ``scg_algorithms.mpc.structured``, prepared once by ``mpsc_structured``,
+  warm-started from the shifted previous solution, polished), by a fixed-iteration ADMM with one factorisation
+  shared by the batch (``solver="admm"``, ``mpsc_admm``) or by qpax's interior point (``solver="qpax"``).
 - ``make_linear_mpsc_casadi``: the same QP for one copy on the host, formulated independently with
   ``casadi.Opti("conic")`` and qpOASES (or OSQP): the reference the tests hold the batched filter to.
 
@@ -32,17 +34,23 @@ Online, per copy (observation ``x``, proposed input ``u_L``), the condensed QP o
     min_v  1/2 |u_0 - u_L|^2 + 1/2 regularization |v_{1:}|^2
     s.t.   x_0 = x,  x_{j+1} = Ad x_j + Bd u_j + c,  rows(x_{j+1}, u_j) <= b - margin_j   (j = 0..H-1)
 
-``regularization`` (default 1e-4) makes the Hessian definite (the one-step cost alone is singular in ``v_1..``); it
-leaves ``v_0`` alone, so it does not bias the certified input.
+The second term is in general ``1/2 sum_{j>=1} v_j^T W v_j``, ``W`` the ancillary LQR's ``R + B^T P B`` scaled to
+the largest eigenvalue ``regularization`` (``mpsc_structured.plan_weight``; with one input, ``regularization``
+itself). It makes the Hessian definite (the one-step cost alone is singular in ``v_1..``); it leaves ``v_0`` alone,
+so it does not bias the certified input.
 With ``x_0 = x`` the tube starts at zero error, so the constant RPI margin is conservative at early stages (the
 design choice "(a)" of the research notes: the original's tube-initial-state freedom is dropped so the problem
 stays a QP).
 
-Fallback (the original's Algorithm 1): the filter state keeps the last feasible plan ``v`` and the steps since
-(``kinf``). When the QP is infeasible (ADMM: ``max(G z - h) > feasibility_tol`` after its iterations; qpax: its
-status), the input is ``u_eq - K (x - x_goal) + v_prev[kinf]`` (the previous plan continued with the tube
-feedback; in this parametrisation the tube controller ``v_j - K (x - z_j)`` reduces to that), and after ``H``
-such steps the plain LQR. The input is finally clipped to the actuator box. ``info.feasible`` is False on a
+Certification: every solver's plan ``v`` is checked on every row of the horizon and the tail (``max(G v - h) <=
+feasibility_tol``; qpax also by its status). Fallback (the original's Algorithm 1): the filter state keeps the last
+certified plan ``v`` and the steps since (``kinf``). When no plan is certified, the input is ``u_eq - K (x - x_goal) +
+v_prev[kinf]`` (the previous plan continued with the tube feedback; in this parametrisation the tube controller
+``v_j - K (x - z_j)`` reduces to that), and after ``H`` such steps, with no certified plan left, the first input of
+the least-violating plan (structured solver: its state rows are soft at the exact-penalty price
+``violation_penalty``; the cart-pole within +-0.1 m has a start from which no plan holds the bound for the horizon
+and tail) or the plain LQR (the other solvers, or ``violation_penalty=0``). The input is finally clipped to the
+actuator box. ``info.feasible`` is False on a
 fallback step, ``info.slack`` is 0 (hard constraints).
 
 Pass-through: where ``u_L`` is the first input of a feasible plan the QP's optimum is ``u_L`` itself (cost 0 up to
@@ -66,8 +74,9 @@ from scg_algorithms import controller_setup as setup
 from scg_algorithms.base import option, parse_options, positive
 from scg_algorithms.lqr import discrete_lqr_gain
 from scg_algorithms.mpc import qp as qp_lib
+from scg_algorithms.mpc import structured
 from scg_algorithms.mpc.linear import _constraint_rows
-from scg_algorithms.safety_filters import mpsc_admm
+from scg_algorithms.safety_filters import mpsc_admm, mpsc_structured
 from scg_algorithms.safety_filters import mpsc_tightening as tight
 from scg_algorithms.safety_filters.backup import backup_weights, diagonal_weight, failure_rows, validation_states
 from scg_algorithms.safety_filters.base import (
@@ -81,17 +90,23 @@ from scg_algorithms.safety_filters.base import (
 
 PATH = "safety_filters.linear_mpsc"
 CASADI_PATH = "safety_filters.linear_mpsc_casadi"
-SOLVERS = ("admm", "qpax")
+SOLVERS = ("structured", "admm", "qpax")
 TIGHTENINGS = ("rpi", "reachable", "none")
 CASADI_SOLVERS = ("qpoases", "osqp")
 QPAX_OBJECTIVE_SCALE = 1e3  # the objective's factor in the qpax solve (see certify)
+
+
+SOLVER_DOC = (
+    "QP solver: scg_algorithms.mpc.structured (prepared once, warm-started, polished), the fixed-iteration "
+    "shared-factorisation ADMM of mpsc_admm, or qpax's interior point"
+)
 
 
 @dataclasses.dataclass(frozen=True)
 class Options:
     """Options of the linear MPSC (``safety_filters.linear_mpsc``)."""
 
-    horizon: int = option(20, "prediction horizon H, control steps (the plan's free inputs)")
+    horizon: int = option(25, "prediction horizon H, control steps (the plan's free inputs)")
     terminal_horizon: float = option(
         2.0, "seconds the plan's tail follows the ancillary LQR inside the tightened rows (the terminal set); 0: none"
     )
@@ -117,8 +132,26 @@ class Options:
         "0.5 whose tube leaves the goal inside the tightened rows",
     )
     constraint_margin: float = option(0.0, "extra margin on every row that involves the state (row units)")
-    regularization: float = option(1e-3, "weight of 1/2 |v_1..v_H-1|^2: the plan's later inputs stay near the LQR's")
-    solver: str = option("admm", "QP solver: shared-factorisation ADMM or qpax interior point", choices=SOLVERS)
+    regularization: float = option(
+        1e-2,
+        "largest eigenvalue of the weight W of 1/2 v^T W v over v_1..v_H-1 (> 0): the plan's later inputs stay "
+        "near the LQR's (W: mpsc_structured.plan_weight)",
+    )
+    solver: str = option("structured", SOLVER_DOC, choices=SOLVERS)
+    structured_max_iter: int = option(1000, "structured: ADMM iterations at most per step (stops once converged)")
+    structured_tol: float = option(1e-5, "structured: absolute and relative residual tolerance of the scaled QP")
+    structured_check_every: int = option(10, "structured: iterations between residual checks and step-size updates")
+    structured_polish_rounds: int = option(3, "structured: active-set polish rounds after the ADMM (0: none)")
+    terminal_rows: int = option(
+        8,
+        "structured: tail rows imposed on the plan's last state in the QP (the nearest to the goal that the others "
+        "do not imply); every tail row is checked after the solve",
+    )
+    violation_penalty: float = option(
+        1e4,
+        "structured: price of a unit of violation of a state row (exact penalty; 1/2 N^2 per row unit): with no "
+        "certified plan left, the least-violating plan's first input is applied instead of the plain LQR",
+    )
     admm_iterations: int = option(500, "ADMM iterations per solve (fixed)")
     admm_rho: float = option(0.1, "ADMM step size rho")
     admm_sigma: float = option(1e-6, "ADMM proximal weight sigma")
@@ -129,7 +162,10 @@ class Options:
     casadi_solver: str = option("qpoases", "conic solver of the CasADi variant", choices=CASADI_SOLVERS)
 
     def _check(self, path: str) -> None:
-        for name in ("horizon", "n_samples", "plant_draws", "admm_iterations", "qpax_iterations"):
+        for name in (
+            "horizon", "n_samples", "plant_draws", "admm_iterations", "qpax_iterations", "structured_max_iter",
+            "structured_check_every",
+        ):  # fmt: skip
             if getattr(self, name) < 1:
                 raise ValueError(f"{path}.{name}: must be a positive integer, got {getattr(self, name)!r}")
         for name in ("admm_rho", "admm_sigma", "feasibility_tol"):
@@ -140,7 +176,9 @@ class Options:
             raise ValueError(f"{path}.admm_alpha: must be in (0, 2), got {self.admm_alpha!r}")
         if self.error_quantile is not None and not 0.0 < self.error_quantile <= 1.0:
             raise ValueError(f"{path}.error_quantile: must be in (0, 1], got {self.error_quantile!r}")
-        for name in ("constraint_margin", "regularization", "terminal_horizon"):
+        positive(f"{path}.regularization", self.regularization)
+        nonnegative = ("constraint_margin", "terminal_horizon", "structured_tol", "structured_polish_rounds")
+        for name in (*nonnegative, "terminal_rows", "violation_penalty"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
 
@@ -159,6 +197,7 @@ class Problem:
         errors: (n, nx) model-error samples (empty without tightening). P_rpi: (nx, nx) the invariant ellipsoid
         (``tightening="rpi"``) or ``None``. qp: the condensed ``qp_lib.CondensedQP`` (its objective unused).
         error_quantile: the quantile of the error bound the tube uses (``error_quantile``, or the one chosen).
+        Q_lqr, R_lqr, P_lqr: (nx, nx), (nu, nu), (nx, nx) the ancillary LQR's weights and its Riccati solution.
     """
 
     options: Options
@@ -179,6 +218,9 @@ class Problem:
     P_rpi: np.ndarray | None
     qp: Any
     error_quantile: float = 1.0
+    Q_lqr: np.ndarray | None = None
+    R_lqr: np.ndarray | None = None
+    P_lqr: np.ndarray | None = None
 
 
 def build_problem(env, prior_params, options=None, plant_params=None, path: str = PATH) -> Problem:
@@ -212,7 +254,7 @@ def build_problem(env, prior_params, options=None, plant_params=None, path: str 
     for quantile in quantiles:  # the largest error bound whose tube leaves room; each gain's tube differs
         for q, r in weights:
             try:
-                K, _ = discrete_lqr_gain(Ad[0], Bd[0], np.diag(q), np.diag(r))
+                K, P_lqr = discrete_lqr_gain(Ad[0], Bd[0], np.diag(q), np.diag(r))
             except ValueError as error:
                 raise ValueError(f"{path}.q_lqr: the ancillary LQR has no stabilising solution ({error})") from None
             A_cl = Ad[0] - Bd[0] @ K
@@ -240,7 +282,7 @@ def build_problem(env, prior_params, options=None, plant_params=None, path: str 
                     "prior), give a smaller error_quantile or make the ancillary LQR gentler (larger r_lqr)"
                 )
                 continue
-            candidates.append((K, P_rpi, margins, quantile))
+            candidates.append((K, P_rpi, margins, quantile, (np.diag(q), np.diag(r), P_lqr)))
         if candidates:
             break
     if not candidates:
@@ -249,16 +291,16 @@ def build_problem(env, prior_params, options=None, plant_params=None, path: str 
         states = validation_states(env, prior_params, 2000, jax.random.key(1))
         held = [
             terminal_set_fraction(states, Ad[0], Bd[0], c[0], K, x_bar, u_bar, rows, margins[H:])
-            for K, _, margins, _ in candidates
+            for K, _, margins, _, _ in candidates
         ]
-        K, P_rpi, margins, quantile = candidates[int(np.argmax(held))]
+        K, P_rpi, margins, quantile, lqr = candidates[int(np.argmax(held))]
     else:
-        K, P_rpi, margins, quantile = candidates[0]
+        K, P_rpi, margins, quantile, lqr = candidates[0]
     affine = qp_lib.AffineModel(Ad=Ad, Bd=Bd, c=c, x_bar=x_bar[None], u_bar=u_bar, K=K[None], P=np.zeros((1, nx, nx)))
     qp = decision_prefix(qp_lib.build_qp(affine, stages, np.zeros((nx, nx)), np.zeros((nu, nu)), rows), H, nu)
     return Problem(
         opts, env.system.name, nx, nu, H, stages, affine, K, x_bar, u_bar, rows, margins, u_low, u_high, errors,
-        P_rpi, qp, quantile,
+        P_rpi, qp, quantile, *lqr,
     )  # fmt: skip
 
 
@@ -363,8 +405,11 @@ class LinearMPSCParams(NamedTuple):
     """The filter's arrays (a pytree; the harness passes it as ``filter_params``).
 
     ``h = Hx @ x + h0`` (p,) and ``u_0 = U0z @ z + U0x @ x + u0c`` give the QP of state ``x``; ``hess`` (nz, nz),
-    ``G`` (p, nz) and ``M_inv`` (the ADMM's shared inverse) are the same for every copy. ``K`` (nu, nx),
+    ``G`` (p, nz) and ``M_inv`` (the ADMM's shared inverse; ``None`` with the other solvers) are the same for every
+    copy; with every solver ``G``, ``Hx``, ``h0`` check a plan's rows over the whole tail. ``K`` (nu, nx),
     ``x_bar`` (nx,), ``u_bar`` (nu,): the ancillary feedback about the goal; ``u_low``, ``u_high``: the clip box, N.
+    ``structured``: with ``solver="structured"``, ``(prepared, c, q, r, bounds)`` of ``mpsc_structured``, else
+    ``None``.
     """
 
     hess: Any
@@ -380,21 +425,23 @@ class LinearMPSCParams(NamedTuple):
     u_bar: Any
     u_low: Any
     u_high: Any
+    structured: Any = None
 
 
 class LinearMPSCState(NamedTuple):
     """Per copy: ``v_plan`` (H, nu) the last feasible plan's decisions, ``kinf`` (int32) steps since it was made
-    (H or more: none left, plain LQR), ``z`` (nz,) and ``y`` (p,) the ADMM's last iterate (warm start)."""
+    (H or more: none left, plain LQR), ``warm`` the solver's warm start: a ``structured.Warm`` (``rho = 0``: none);
+    with ``solver="admm"`` its ``values`` and ``multipliers`` hold the ADMM's last iterate ``z`` (nz,) and ``y``
+    (p,)."""
 
     v_plan: Any
     kinf: Any
-    z: Any
-    y: Any
+    warm: Any
 
 
 def qp_data(problem: Problem) -> dict:
     """The QP of ``problem`` in the reduced form of ``LinearMPSCParams`` (numpy float64, before the ADMM inverse)."""
-    qp, opts, nx, nu, H = problem.qp, problem.options, problem.nx, problem.nu, problem.stages
+    qp, nx, nu, H = problem.qp, problem.nx, problem.nu, problem.stages
     m = problem.rows.num_rows
     norms = np.linalg.norm(np.concatenate([problem.rows.Ax, problem.rows.Au], axis=1), axis=1)
     h_map = qp.h_map[0].copy()
@@ -405,7 +452,8 @@ def qp_data(problem: Problem) -> dict:
     u0_map = qp.u0_map[0]
     U0z, U0x, u0c = u0_map[:, :nz], u0_map[:, nz : nz + nx], u0_map[:, nz + nx :] @ theta_rest
     # The regulariser leaves v_0 alone, so a proposed input that starts a feasible plan is the exact optimum.
-    hess = U0z.T @ U0z + opts.regularization * np.diag(np.r_[np.zeros(nu), np.ones(nz - nu)])
+    _, W = mpsc_structured.plan_weight(problem)
+    hess = U0z.T @ U0z + np.kron(np.diag(np.r_[0.0, np.ones(nz // nu - 1)]), W)
     return {
         "hess": hess,
         "G": qp.G[0],
@@ -436,7 +484,8 @@ def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> Filt
 
     Returns:
         A JAX ``Filter`` named ``"linear_mpsc"``; ``certify(obs, u_uncertified, params, state)`` returns the certified
-        input (nu,), N, ``LinearMPSCState`` and ``FilterInfo``. ``info`` holds the host ``problem``.
+        input (nu,), N, ``LinearMPSCState`` and ``FilterInfo``. ``info`` holds the host ``problem`` (and with the
+        structured solver ``structured``, the ``mpsc_structured.StructuredMPSC``).
 
     Raises:
         ValueError: naming ``safety_filters.linear_mpsc.<field>`` for a bad option or an infeasible tightening.
@@ -445,26 +494,67 @@ def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> Filt
     opts = problem.options
     dtype = jnp.zeros(()).dtype
     data = qp_data(problem)
-    M_inv = mpsc_admm.admm_inverse(data["hess"], data["G"], opts.admm_rho, opts.admm_sigma, dtype)
     as_jax = lambda a: jnp.asarray(a, dtype)  # noqa: E731
+    smpsc = mpsc_structured.build(problem) if opts.solver == "structured" else None
     params = LinearMPSCParams(
         **{k: as_jax(v) for k, v in data.items()},
-        M_inv=M_inv,
+        M_inv=None
+        if opts.solver != "admm"
+        else mpsc_admm.admm_inverse(data["hess"], data["G"], opts.admm_rho, opts.admm_sigma, dtype),
         K=as_jax(problem.K),
         x_bar=as_jax(problem.x_bar),
         u_bar=as_jax(problem.u_bar),
         u_low=as_jax(problem.u_low),
         u_high=as_jax(problem.u_high),
+        structured=None
+        if smpsc is None
+        else (smpsc.prepared, as_jax(smpsc.c), as_jax(smpsc.q), as_jax(smpsc.r), tuple(map(as_jax, smpsc.bounds))),
     )
     nx, nu, H = problem.nx, problem.nu, problem.horizon
     nz, p = data["hess"].shape[0], data["G"].shape[0]
     rows_per_stage = p // problem.stages
     system = problem.system
+    warm_size = (smpsc.layout.num_dense,) * 2 if smpsc is not None else (nz, p)
 
     def reset(key):
-        return LinearMPSCState(
-            jnp.zeros((H, nu), dtype), jnp.asarray(H, jnp.int32), jnp.zeros(nz, dtype), jnp.zeros(p, dtype)
+        warm = structured.Warm(jnp.zeros(warm_size[0], dtype), jnp.zeros(warm_size[1], dtype), jnp.zeros((), dtype))
+        return LinearMPSCState(jnp.zeros((H, nu), dtype), jnp.asarray(H, jnp.int32), warm)
+
+    def solve_structured(params, x, u_target, state):
+        """``(v (nz,), warm, usable, u_least)`` of the structured solver (``usable``: not numerical; ``u_least``: the
+        first input of the least-violating plan, the plain LQR's after a numerical failure)."""
+        prepared, c, q, r, bounds = params.structured
+        warm = structured.shift(smpsc.layout, state.warm) if opts.warm_start else None
+        sol = structured.solve_prepared(
+            smpsc.layout, prepared, x, c, q, r.at[0].add(-u_target), bounds, warm, smpsc.settings
         )
+        # The plan's decisions in the ancillary parametrisation, where the tail's rows (G) are written.
+        v = sol.u + (sol.x[:H] - params.x_bar) @ params.K.T - params.u_bar
+        usable = (sol.status != structured.INFEASIBLE) & (sol.status != structured.NUMERICAL)
+        u_lqr = params.u_bar - params.K @ (x - params.x_bar)
+        return v.reshape(-1), sol.warm, usable, jnp.where(usable, sol.u[0], u_lqr)
+
+    def solve_admm(params, x, q, h, state):
+        # Warm start from the last solution shifted by one stage (its tail is the plan from here on).
+        z0 = jnp.concatenate([state.warm.values[nu:], jnp.zeros(nu, dtype)]) if opts.warm_start else None
+        y = state.warm.multipliers
+        y0 = jnp.concatenate([y[rows_per_stage:], y[-rows_per_stage:]]) if opts.warm_start else None
+        sol = mpsc_admm.admm_solve(
+            params.M_inv, params.G, q, h, iterations=opts.admm_iterations, rho=opts.admm_rho,
+            sigma=opts.admm_sigma, alpha=opts.admm_alpha, z0=z0, y0=y0,
+        )  # fmt: skip
+        u_lqr = params.u_bar - params.K @ (x - params.x_bar)
+        return sol.z, structured.Warm(sol.z, sol.y, jnp.ones((), dtype)), jnp.ones((), bool), u_lqr
+
+    def solve_qpax(params, x, q, h, state):
+        # Scaled up: qpax floors its duals at sqrt(eps), which shifts z by about hess^-1 G^T sqrt(eps); with
+        # the regulariser's 1e-4 eigenvalues that is 1e-4 N unscaled (scg_algorithms.mpc.qp explains the floor).
+        sol = qp_lib.solve_qp(
+            QPAX_OBJECTIVE_SCALE * params.hess, QPAX_OBJECTIVE_SCALE * q, params.G, h,
+            max_iter=opts.qpax_iterations, solver_tol=1e-10, feasibility_tol=opts.feasibility_tol,
+        )  # fmt: skip
+        u_lqr = params.u_bar - params.K @ (x - params.x_bar)
+        return sol.z, state.warm, sol.status != qp_lib.STATUS_FAILED, u_lqr
 
     def certify(obs, u_uncertified, params, state):
         obs = jnp.asarray(obs)
@@ -477,50 +567,28 @@ def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> Filt
         x = jnp.asarray(obs[:nx], dtype)
         u_target = jnp.clip(u_uncertified, params.u_low, params.u_high)
         q, h = qp_of(params, x, u_target)
-        if opts.solver == "admm":
-            # Warm start from the last solution shifted by one stage (its tail is the plan from here on).
-            z0 = jnp.concatenate([state.z[nu:], jnp.zeros(nu, dtype)]) if opts.warm_start else None
-            y0 = jnp.concatenate([state.y[rows_per_stage:], state.y[-rows_per_stage:]]) if opts.warm_start else None
-            sol = mpsc_admm.admm_solve(
-                params.M_inv,
-                params.G,
-                q,
-                h,
-                iterations=opts.admm_iterations,
-                rho=opts.admm_rho,
-                sigma=opts.admm_sigma,
-                alpha=opts.admm_alpha,
-                z0=z0,
-                y0=y0,
-            )
-            z, y, violation = sol.z, sol.y, sol.violation
+        if opts.solver == "structured":
+            z, warm, usable, u_last_resort = solve_structured(params, x, u_target, state)
+        elif opts.solver == "admm":
+            z, warm, usable, u_last_resort = solve_admm(params, x, q, h, state)
         else:
-            # Scaled up: qpax floors its duals at sqrt(eps), which shifts z by about hess^-1 G^T sqrt(eps); with
-            # the regulariser's 1e-4 eigenvalues that is 1e-4 N unscaled (scg_algorithms.mpc.qp explains the floor).
-            sol = qp_lib.solve_qp(
-                QPAX_OBJECTIVE_SCALE * params.hess,
-                QPAX_OBJECTIVE_SCALE * q,
-                params.G,
-                h,
-                max_iter=opts.qpax_iterations,
-                solver_tol=1e-10,
-                feasibility_tol=opts.feasibility_tol,
-            )
-            z, y, violation = sol.z, state.y, jnp.where(sol.status == qp_lib.STATUS_FAILED, jnp.inf, sol.violation)
+            z, warm, usable, u_last_resort = solve_qpax(params, x, q, h, state)
+        # Every solver's plan is checked on every row of the horizon and the tail (the structured solver saw the
+        # tail through its non-redundant rows only).
+        excess = params.G @ z - h
         u_qp = params.U0z @ z + params.U0x @ x + params.u0c
-        feasible = (violation <= opts.feasibility_tol) & jnp.all(jnp.isfinite(u_qp))
+        feasible = usable & (jnp.max(excess) <= opts.feasibility_tol) & jnp.all(jnp.isfinite(u_qp))
         # The proposal itself where the solved plan, started with it instead (v_0 enters u_0 with the identity),
         # still holds every row: the solver's error on a safe proposal is no correction.
-        passes = feasible & (jnp.max(params.G @ z.at[:nu].add(u_target - u_qp) - h) <= opts.feasibility_tol)
+        passes = feasible & (jnp.max(excess + params.G[:, :nu] @ (u_target - u_qp)) <= opts.feasibility_tol)
         u_qp = jnp.where(passes, u_target, u_qp)
         kinf = jnp.where(feasible, 0, jnp.minimum(state.kinf + 1, H))
         v_plan = jnp.where(feasible, z[: H * nu].reshape(H, nu), state.v_plan)
-        v_backup = jnp.where(kinf < H, v_plan[jnp.minimum(kinf, H - 1)], 0.0)
-        u_backup = params.u_bar - params.K @ (x - params.x_bar) + v_backup
+        u_plan = params.u_bar - params.K @ (x - params.x_bar) + v_plan[jnp.minimum(kinf, H - 1)]
+        u_backup = jnp.where(kinf < H, u_plan, u_last_resort)
         u = jnp.clip(jnp.where(feasible, u_qp, u_backup), params.u_low, params.u_high)
-        # A failed solve's iterate is a poor warm start: restart from zeros.
-        z_next = jnp.where(feasible, z, jnp.zeros_like(z))
-        y_next = jnp.where(feasible, y, jnp.zeros_like(y))
+        # A failed solve's iterate is a poor warm start: the next solve starts cold.
+        warm = jax.tree.map(lambda a: jnp.where(feasible, a, jnp.zeros_like(a)), warm)
         applied = jnp.where(feasible, CERTIFIED, jnp.where(kinf < H, BACKUP_PLAN, BACKUP_CONTROLLER))
         info = FilterInfo(
             feasible=feasible,
@@ -528,10 +596,10 @@ def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> Filt
             correction=applied_correction(u, u_uncertified, params.u_low, params.u_high),
             applied=applied,
         )
-        return u, LinearMPSCState(v_plan, kinf.astype(jnp.int32), z_next, y_next), info
+        return u, LinearMPSCState(v_plan, kinf.astype(jnp.int32), warm), info
 
     info = {
-        "problem": problem, "options": opts, "horizon": H, "solver": opts.solver,
+        "problem": problem, "options": opts, "horizon": H, "solver": opts.solver, "structured": smpsc,
         "error_quantile": problem.error_quantile, "tightening_max": problem.margins.max(axis=0).tolist(),
     }  # fmt: skip
     return Filter(name="linear_mpsc", system=system, params=params, reset_fn=reset, certify_fn=certify, info=info)
@@ -622,7 +690,8 @@ def make_linear_mpsc_casadi(env, prior_params, options=None, plant_params=None) 
         X.append(A @ X[j] + B @ U[:, j] + c)
     V = cs.horzcat(*V)
     du = U[:, 0] - u_l
-    opti.minimize(0.5 * cs.dot(du, du) + 0.5 * opts.regularization * cs.sumsqr(V[:, 1:]))
+    W = cs.DM(mpsc_structured.plan_weight(problem)[1])
+    opti.minimize(0.5 * cs.dot(du, du) + 0.5 * sum(cs.bilin(W, V[:, j], V[:, j]) for j in range(1, H)))
     Ax, Au = cs.DM(rows.Ax), cs.DM(rows.Au)
     for j in range(H):
         opti.subject_to(Ax @ X[j + 1] + Au @ U[:, j] <= cs.DM(rows.b - problem.margins[j]))

@@ -5,9 +5,11 @@ Problem per step (state ``x``, proposed input ``u_L``; ``fd`` the prior's discre
 ``env.symbolic_model(prior_params)`` with the env's integrator or one RK4 step, plus the mean model error ``bias``
 when ``model_bias``)::
 
-    min_{X, U}  1/2 |U_0 - u_L|^2 + 1/2 regularization sum_{j>=1} |U_j - u_eq + K (X_j - x_goal)|^2
-    s.t.        X_0 = x,  X_{j+1} = fd(X_j, U_j) + bias,
-                Ax X_{j+1} + Au U_j <= b - margin_j                      (j = 0..H-1)
+    min_{X, U, S}  1/2 |U_0 - u_L|^2 + 1/2 regularization sum_{j>=1} |U_j - u_eq + K (X_j - x_goal)|^2
+                   + violation_penalty sum(S)
+    s.t.           X_0 = x,  X_{j+1} = fd(X_j, U_j) + bias,
+                   Ax X_{j+1} + Au U_j <= b - margin_j + S_j,  S >= 0    (j = 0..H-1; S_j = 0 on input rows)
+                   the terminal tail's rows from X_H, with one slack for the whole tail
 
 - Rows: the actuator limits and the env's linear constraints (``scg_algorithms.mpc.linear``'s rows; quadratic
   constraints are not imposed).
@@ -15,10 +17,17 @@ when ``model_bias``)::
   the goal, from the per-dimension bound of the model error ``w = x+ - fd(x, u) - bias`` over ``n_samples`` plant
   transitions (``mpsc_tightening``); the margin grows with the stage as the incremental-Lyapunov sequence
   ``s_j`` of the fork's ``nl_mpsc`` does, without its offline LMI.
-- Warm start: the previous solution shifted by one step (the last input held); a cold start holds ``x``.
-- Fallback (Algorithm 1) when IPOPT fails: the previous plan continued with the tube feedback,
-  ``U_prev[kinf] - K (x - X_prev[kinf])``, and after ``H`` failed steps the LQR ``u_eq - K (x - x_goal)``; the input
-  is clipped to the actuator limits.
+- Soft state rows (``violation_penalty > 0``, as the linear MPSC's structured solver): every row on the state, at
+  every stage and over the terminal tail, may be exceeded by a slack priced at ``violation_penalty`` per row unit
+  (an exact penalty: where a plan holds every row, the solution is the hard problem's). The problem is then always
+  feasible, and where no plan holds the rows IPOPT returns the least-violating one instead of failing. A plan is
+  certified only when it meets the dynamics and every row without slack.
+- Warm start: the last plan IPOPT returned (certified or least-violating) shifted by one step (the last input
+  held); a cold start holds ``x``.
+- Fallback (Algorithm 1) when no plan is certified: the last certified plan continued with the tube feedback,
+  ``U_prev[kinf] - K (x - X_prev[kinf])``, and after ``H`` such steps the least-violating plan's first input (the LQR
+  ``u_eq - K (x - x_goal)`` with hard rows or when IPOPT returned no plan that meets the dynamics); the input is
+  clipped to the actuator limits.
 
 ``certify(x_or_obs, u_uncertified, filter_params, filter_state)`` takes numpy arrays of one copy and returns
 ``(u (nu,), filter_state, FilterInfo)``; ``filter_params`` is unused (the problem is built in). Units SI.
@@ -47,6 +56,18 @@ from scg_algorithms.safety_filters.base import (
 PATH = "safety_filters.nonlinear_mpsc"
 TIGHTENINGS = ("reachable", "none")
 FEASIBILITY_TOL = 1e-6  # largest dynamics residual and row violation (state units, m, N) of a solution still used
+# Measured under the contract's 3D ceiling (docs/safety-filters.md, "Every system, every constraint"). The cost
+# 1/2 |U_0 - u_L|^2 is in motor thrusts: with the reference above the ceiling, LQR asks for more thrust than the
+# ceiling allows, and the nonlinear model lets a plan take it by tilting (the thrust then pushes sideways instead of
+# up). Only the failure bounds (85 degrees) limit the tilt, so certified plans pitched the quadrotor to 1.44 rad at the
+# ceiling and it flew 1.8 m off the circle. The linear MPSC's model has no such way out (tilt enters vertical thrust
+# to second order), and in 2D the same filter holds (1.14x).
+QUADROTOR_3D_REFUSAL = (
+    f"{PATH}.allow_quadrotor_3d: the nonlinear MPSC is refused on quadrotor_3d: under a z <= 1.3 m ceiling its "
+    "certified plans brake by tilting the quadrotor (pitch up to 1.44 rad at the ceiling, the plant 1.8 m off the "
+    "reference): 0 violating steps but 2.7-3.2x LQR's RMSE where the filters' contract allows 1.5x; use "
+    "safety_filters.linear_mpsc or cbf (both hold there), or set allow_quadrotor_3d: true to build it anyway"
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,11 +94,25 @@ class Options:
         "tube leaves the goal inside the tightened rows",
     )
     model_bias: bool = option(True, "add the mean sampled model error to the prediction model")
-    constraint_margin: float = option(0.0, "extra margin on every row that involves the state (row units)")
-    regularization: float = option(1e-3, "weight of the deviation of U_j from the tube feedback (j >= 1)")
+    constraint_margin: float = option(
+        0.003,
+        "extra margin on every row that involves the state (row units; the default: 3 standard deviations of the "
+        "configs' 1 mm position noise, which the tube from the observed state does not hold)",
+    )
+    regularization: float = option(1e-2, "weight of the deviation of U_j from the tube feedback (j >= 1)")
+    violation_penalty: float = option(
+        1e4,
+        "price of a unit of violation of a state row (exact penalty; 1/2 N^2 per row unit; 0: hard rows): with no "
+        "certified plan left, the least-violating plan's first input is applied instead of the plain LQR",
+    )
     max_iter: int = option(100, "IPOPT iterations at most")
     tol: float = option(1e-8, "IPOPT tolerance")
     warm_start: bool = option(True, "start IPOPT from the previous plan shifted by one step")
+    allow_quadrotor_3d: bool = option(
+        False,
+        "build on the 3D quadrotor, where the filter fails the contract (plans that tilt it to brake; the refusal "
+        "message has the measurement)",
+    )
 
     def _check(self, path: str) -> None:
         for name in ("horizon", "n_samples", "plant_draws", "max_iter"):
@@ -86,7 +121,7 @@ class Options:
         positive(f"{path}.tol", self.tol)
         if self.error_quantile is not None and not 0.0 < self.error_quantile <= 1.0:
             raise ValueError(f"{path}.error_quantile: must be in (0, 1], got {self.error_quantile!r}")
-        for name in ("constraint_margin", "regularization", "terminal_horizon"):
+        for name in ("constraint_margin", "regularization", "terminal_horizon", "violation_penalty"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
 
@@ -117,6 +152,8 @@ class NonlinearMPSC:
 
         self.options = opts
         self.system = env.system.name
+        if self.system == "quadrotor_3d" and not opts.allow_quadrotor_3d:
+            raise ValueError(QUADROTOR_3D_REFUSAL)
         nx, nu, H = self.nx, self.nu, self.horizon = env.nx, env.nu, opts.horizon
         if opts.sample_half_width is not None and len(opts.sample_half_width) != nx:
             raise ValueError(f"{PATH}.sample_half_width: expected {nx} values, got {len(opts.sample_half_width)}")
@@ -190,15 +227,31 @@ class NonlinearMPSC:
         opti.subject_to(X[:, 0] == x0)
         cost = 0.5 * cs.sumsqr(U[:, 0] - u_l)
         Ax, Au = cs.DM(rows.Ax), cs.DM(rows.Au)
+        # The rows on the state are soft at the exact-penalty price violation_penalty (as the linear MPSC's): where
+        # a plan holds every row the solution is the hard problem's (the price exceeds every multiplier), elsewhere
+        # IPOPT returns the least-violating plan instead of failing. One slack per state row and stage, one for the
+        # whole tail (its largest violation); a plan is certified only with every row held (``solve``).
+        soft = opts.violation_penalty > 0
+        state_rows = np.flatnonzero(np.any(rows.Ax != 0.0, axis=1)) if soft else np.zeros(0, int)
+        select = cs.DM(np.eye(rows.num_rows)[:, state_rows])
+        slack = opti.variable(state_rows.size, H) if state_rows.size else None
+        tail_slack = opti.variable() if soft and self.stages > H else 0.0
         for j in range(H):
             opti.subject_to(X[:, j + 1] == model.fd(X[:, j], U[:, j]) + bias)
-            opti.subject_to(Ax @ X[:, j + 1] + Au @ U[:, j] <= cs.DM(rows.b - self.margins[j]))
+            bound = cs.DM(rows.b - self.margins[j]) + (select @ slack[:, j] if slack is not None else 0.0)
+            opti.subject_to(Ax @ X[:, j + 1] + Au @ U[:, j] <= bound)
             if j >= 1:  # v_0 is left alone so that a safe proposal is the exact optimum
                 cost += 0.5 * opts.regularization * cs.sumsqr(U[:, j] - u_eq + K @ (X[:, j] - goal))
+        if slack is not None:
+            opti.subject_to(cs.vec(slack) >= 0)
+            cost += opts.violation_penalty * cs.sum1(cs.vec(slack))
         # The terminal set: from X_H the ancillary LQR on the linearised model keeps the rows over the tail.
         tail_rows = self._tail_rows(X[:, H], cs)
         if self.stages > H:
-            opti.subject_to(tail_rows <= 0)
+            opti.subject_to(tail_rows <= tail_slack)
+            if soft:
+                opti.subject_to(tail_slack >= 0)
+                cost += opts.violation_penalty * tail_slack
         opti.minimize(cost)
         ipopt = {"print_level": 0, "sb": "yes", "max_iter": opts.max_iter, "tol": opts.tol}
         opti.solver("ipopt", {"print_time": False, "error_on_fail": False, "expand": True}, ipopt)
@@ -229,10 +282,17 @@ class NonlinearMPSC:
 
     def reset(self, key):
         """No plan yet: ``kinf = H`` (a failure at the first step falls back to the LQR)."""
-        return {"x_plan": None, "u_plan": None, "kinf": self.horizon}
+        return {"x_plan": None, "u_plan": None, "kinf": self.horizon, "guess": None}
 
     def solve(self, x, u_uncertified, x_guess=None, u_guess=None):
-        """``(X (H+1, nx), U (H, nu), success)`` of the NLP from ``x`` (nx,) for ``u_uncertified`` (nu,)."""
+        """``(X (H+1, nx), U (H, nu), success)`` of the NLP from ``x`` (nx,) for ``u_uncertified`` (nu,):
+        ``success`` when the plan is certified (dynamics met, every row held)."""
+        X, U, success, _ = self.solve_soft(x, u_uncertified, x_guess, u_guess)
+        return X, U, success
+
+    def solve_soft(self, x, u_uncertified, x_guess=None, u_guess=None):
+        """``(X, U, success, usable)`` as ``solve``; ``usable``: the plan is finite and meets the dynamics (with soft
+        rows, the least-violating plan where ``success`` is False)."""
         if x_guess is None:
             x_guess, u_guess = np.tile(x, (self.horizon + 1, 1)), np.tile(self.u_eq, (self.horizon, 1))
         X, U = self._solve(x, u_uncertified, x_guess.T, u_guess.T)
@@ -240,12 +300,13 @@ class NonlinearMPSC:
         U = np.asarray(U, dtype=np.float64).reshape(self.nu, -1).T
         # Success from the solution itself (the Function hides IPOPT's status): finite, dynamics met, rows held.
         if not (np.all(np.isfinite(X)) and np.all(np.isfinite(U))):
-            return X, U, False
+            return X, U, False, False
         dynamics = np.abs(np.asarray(self._residual(x, X.T, U.T))).max()
         rows = X[1:] @ self.rows.Ax.T + U @ self.rows.Au.T - (self.rows.b - self.margins[: self.horizon])
         tail = np.asarray(self._tail_excess(X.T), dtype=np.float64)
         excess = max(rows.max(), tail.max(initial=-np.inf))
-        return X, U, bool(dynamics <= FEASIBILITY_TOL and excess <= FEASIBILITY_TOL)
+        usable = bool(dynamics <= FEASIBILITY_TOL)
+        return X, U, usable and bool(excess <= FEASIBILITY_TOL), usable
 
     def certify(self, x_or_obs, u_uncertified, filter_params, filter_state):
         obs = np.asarray(x_or_obs, dtype=np.float64)
@@ -259,24 +320,26 @@ class NonlinearMPSC:
         x = obs[: self.nx]
         H = self.horizon
         x_guess = u_guess = None
-        if self.options.warm_start and filter_state["x_plan"] is not None and filter_state["kinf"] == 0:
-            x_guess = np.concatenate([filter_state["x_plan"][1:], filter_state["x_plan"][-1:]])
+        if self.options.warm_start and filter_state.get("guess") is not None:
+            X_last, U_last = filter_state["guess"]  # the last usable plan (certified or least-violating), shifted
+            x_guess = np.concatenate([X_last[1:], X_last[-1:]])
             x_guess[0] = x
-            u_guess = np.concatenate([filter_state["u_plan"][1:], filter_state["u_plan"][-1:]])
-        X, U, success = self.solve(x, u_l, x_guess, u_guess)
+            u_guess = np.concatenate([U_last[1:], U_last[-1:]])
+        X, U, success, usable = self.solve_soft(x, u_l, x_guess, u_guess)
         applied = CERTIFIED
         if success:
             u = U[0]
-            state = {"x_plan": X, "u_plan": U, "kinf": 0}
+            state = {"x_plan": X, "u_plan": U, "kinf": 0, "guess": (X, U)}
         else:
             kinf = min(filter_state["kinf"] + 1, H)
             if kinf < H and filter_state["x_plan"] is not None:
                 u = filter_state["u_plan"][kinf] - self.K @ (x - filter_state["x_plan"][kinf])
                 applied = BACKUP_PLAN
-            else:
-                u = self.u_eq - self.K @ (x - self.x_goal)
+            else:  # no certified plan left: the least-violating plan's first input, or the LQR
+                soft = usable and self.options.violation_penalty > 0
+                u = U[0] if soft else self.u_eq - self.K @ (x - self.x_goal)
                 applied = BACKUP_CONTROLLER
-            state = {**filter_state, "kinf": kinf}
+            state = {**filter_state, "kinf": kinf, "guess": (X, U) if usable else None}
         u = np.clip(u, self.u_low, self.u_high)
         correction = applied_correction(u, u_unc, self.u_low, self.u_high, np)
         return u, state, FilterInfo(feasible=success, slack=0.0, correction=correction, applied=applied)
@@ -296,4 +359,4 @@ def make_nonlinear_mpsc(env, prior_params, options=None, plant_params=None) -> N
     return NonlinearMPSC(env, prior_params, parse_options(Options, options, PATH), plant_params)
 
 
-__all__ = ["Options", "NonlinearMPSC", "PATH", "TIGHTENINGS", "make_nonlinear_mpsc"]
+__all__ = ["Options", "NonlinearMPSC", "PATH", "QUADROTOR_3D_REFUSAL", "TIGHTENINGS", "make_nonlinear_mpsc"]
