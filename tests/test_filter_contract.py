@@ -52,10 +52,12 @@ CELLS = [
 #   cart |theta| 1 s: 30.0 (176.5), 0 %, 0.87x;  1D 2 s: 26.0 (26.0), 0 %, 1.24x;  2D z 1 s: 27.0 (76.0), 0 %, 1.03x
 #   2D |x| 1 s: 3.0 (101.0), 0 %, 1.00x (LQR overshoots the box once, at the start; its later crossings, at
 #   x = -0.5 m after 2.2 s, need 3 s episodes, about 75 s of IPOPT; the benchmark's 2 full ones: 0 %, 1.42x)
-HOST_CELLS = {CART_X: (2, 3.0), CART_THETA: (2, 1.0), QUAD_1D: (2, 2.0), QUAD_2D_Z: (1, 1.0), QUAD_2D_X: (1, 1.0)}
 # Refused on the 3D quadrotor (mpsc_nonlinear.QUADROTOR_3D_REFUSAL: 0 violating steps at 2.7-3.2x LQR's RMSE, the
-# plans tilting it to brake): the cell checks the refusal against the JAX cells' baseline.
-HOST_CELLS[QUAD_3D_Z] = (EPISODES, None)
+# plans tilting it to brake): that cell checks the refusal against the JAX cells' baseline.
+HOST_CELLS = {
+    CART_X: (2, 3.0), CART_THETA: (2, 1.0), QUAD_1D: (2, 2.0), QUAD_2D_Z: (1, 1.0), QUAD_2D_X: (1, 1.0),
+    QUAD_3D_Z: (EPISODES, None),
+}  # fmt: skip
 REFUSED = {(QUAD_3D_Z, "nonlinear_mpsc")}
 
 
@@ -73,7 +75,7 @@ def test_filter_keeps_the_constraint_or_refuses(case, name):
     env, params, controller, baseline = _baseline(case, episodes, seconds)
     assert baseline.summary["constraint_violation_steps"] >= 2.0  # LQR alone crosses the constraint
     outcome = C.run_filter(C.CASES[case], name, env, params, controller, baseline, episodes)
-    # The issue's two cases (cart-pole |x|, 2D circle under z) must hold; the table's one refusal is expected
+    # The issue's two cases (cart-pole |x|, 2D circle under z) must hold; the table's one refusal is expected.
     assert (outcome.refusal is not None) == ((case, name) in REFUSED), outcome
     if outcome.refusal is not None:
         # A refusal names the filter's option path and says why (after the field, a reason of some words).

@@ -362,8 +362,11 @@ class _Run:
     compile_s: float = 0.0
     run_start: float = 0.0  # perf_counter() after compiling
 
+    # The learner's update under jax.jit: tracing it takes seconds, and progress.csv's columns and the chunk runner
+    # share this one trace.
+    update: Callable = dataclasses.field(init=False)
+
     def __post_init__(self):
-        # Tracing a learner's update takes seconds: progress.csv's columns and the chunk runner share this one trace.
         self.update = jax.jit(self.learner.update)
 
     @property
