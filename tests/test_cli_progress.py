@@ -115,6 +115,9 @@ class _Piped:
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
+            # Ctrl-C as in a terminal: a test run started in the background (``pytest &`` in a script) ignores
+            # SIGINT, the child would inherit that, and Python would then not raise KeyboardInterrupt at all.
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
         )
         self.lines: list[tuple[float, str]] = []
         self.reader = threading.Thread(target=self._read, daemon=True)
