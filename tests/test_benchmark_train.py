@@ -77,14 +77,15 @@ class _FakeClock:
         return self.now
 
 
-def _race(bench, rmse_at, *, num_iterations=1000, warmup=0, max_s=1e9, chunk_s=1.0, compile_s=2.0):
-    """The race on a fake learner: an iteration takes 0.1 s (the first chunk also ``compile_s``), an evaluation 5 s
-    (not counted); the state is the iteration count and the RMSE ``rmse_at(iterations)``."""
+def _race(bench, rmse_at, *, num_iterations=1000, warmup=0, max_s=1e9, chunk_s=1.25, compile_s=2.0):
+    """The race on a fake learner: an iteration takes 0.125 s (the first chunk also ``compile_s``), an evaluation 5 s
+    (not counted); the state is the iteration count and the RMSE ``rmse_at(iterations)``. Times are binary
+    fractions, so the clock's sums are exact."""
     clock = _FakeClock()
     chunks = []
 
     def run_chunk(state, n):
-        clock.now += 0.1 * n + (compile_s if not chunks else 0.0)
+        clock.now += 0.125 * n + (compile_s if not chunks else 0.0)
         chunks.append(n)
         return state + n
 
@@ -101,12 +102,12 @@ def _race(bench, rmse_at, *, num_iterations=1000, warmup=0, max_s=1e9, chunk_s=1
 
 def test_race_stops_at_the_threshold_with_evaluation_excluded(bench):
     # RMSE 1 / iterations: at most 0.1 from iteration 10 on.
-    result, chunks = _race(bench, lambda it: 1.0 / it, chunk_s=0.5)
-    # The first chunk takes 2.1 s with the compile, so the second is 1 again; then doubling, capped at chunk_s / 0.1 s
-    # = 5 iterations: 1, 1, 2, 4, 5 reach 13 >= 10.
+    result, chunks = _race(bench, lambda it: 1.0 / it, chunk_s=0.625)
+    # The first chunk takes 2.125 s with the compile, so the second is 1 again; then doubling, capped at chunk_s /
+    # 0.125 s = 5 iterations: 1, 1, 2, 4, 5 reach 13 >= 10.
     assert chunks == [1, 1, 2, 4, 5]
     assert result["reached"] and result["env_steps"] == 13 * 64
-    assert result["time_s"] == pytest.approx(2.0 + 0.1 * 13)  # five evaluations of 5 s not counted
+    assert result["time_s"] == 2.0 + 0.125 * 13  # five evaluations of 5 s not counted
     assert [p["env_steps"] for p in result["curve"]] == [64, 128, 256, 512, 832]
 
 
@@ -114,10 +115,10 @@ def test_race_runs_the_warmup_in_one_chunk_and_gives_up_at_the_limits(bench):
     # Never reaches the threshold: the budget ends it (the last chunk shortened to fit), not reached.
     result, chunks = _race(bench, lambda it: 1.0, num_iterations=40, warmup=12, compile_s=0.0)
     assert chunks == [12, 10, 10, 8] and not result["reached"] and result["env_steps"] == 40 * 64
-    # The time limit: stops at the first evaluation past max_s (2.1 s, 2.2 s, then 2.4 s > 2.25 s).
-    result, chunks = _race(bench, lambda it: 1.0, max_s=2.25)
+    # The time limit: stops at the first evaluation past max_s (2.125 s, 2.25 s, then 2.5 s > 2.3 s).
+    result, chunks = _race(bench, lambda it: 1.0, max_s=2.3)
     assert chunks == [1, 1, 2] and not result["reached"]
-    assert result["time_s"] == pytest.approx(2.4) and result["env_steps"] == 4 * 64
+    assert result["time_s"] == 2.5 and result["env_steps"] == 4 * 64
 
 
 def test_ratio_rows_pair_each_learner_with_its_brax_rival(bench):
