@@ -41,6 +41,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
+from unittest import mock
 
 import jax
 import jax.numpy as jnp
@@ -351,6 +352,7 @@ def brax_arguments(algo: str, config) -> dict:
         SystemExit: a SAC config brax cannot express (``critic_lr != actor_lr``, or ``utd * num_envs`` not a whole
             number of gradient steps per step of the copies).
     """
+    import scg_jax.adapters.brax  # noqa: F401  (before brax: drops mujoco's "Failed to import warp" lines)
     from scg_algorithms.rl.networks import activation
 
     if algo == "ppo":
@@ -419,16 +421,15 @@ def brax_time_to_threshold(env, params, cfg, algo, threshold, eval_key, episodes
     ``progress_fn`` gets metrics only, so for the run ``brax.training.acting.Evaluator`` is replaced by one that
     keeps the parameters it is handed (and evaluates nothing); ``progress_fn``, called right after, evaluates them.
     """
-    from unittest import mock
-
-    from brax.training import acting
-    from brax.training.agents.ppo import train as brax_ppo
-    from brax.training.agents.sac import train as brax_sac
-
+    # Before brax itself: importing brax through the adapter drops mujoco's "Failed to import warp" lines.
     from scg_jax.adapters.brax import wrap_for_training
 
     if env.action_mode != "normalized":
         raise SystemExit("brax comparison: the config's env must use action_mode: normalized")
+    from brax.training import acting
+    from brax.training.agents.ppo import train as brax_ppo
+    from brax.training.agents.sac import train as brax_sac
+
     config = _config(cfg, algo)
     arguments = brax_arguments(algo, config)
     curve, evaluators, eval_s = [], {}, [0.0]
