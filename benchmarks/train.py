@@ -415,7 +415,8 @@ def _brax_env(env, action_scale: float):
 def brax_time_to_threshold(env, params, cfg, algo, threshold, eval_key, episodes, max_s, num_evals, console) -> dict:
     """brax's PPO or SAC (``algo``) on the same env with our config's matched hyperparameters (``brax_arguments``),
     its deterministic policy evaluated by our harness at ``num_evals`` points, as ours (evaluation excluded from the
-    clock); brax's own evaluator is off. The run stops at the threshold or past ``max_s``.
+    clock); brax's own evaluator is off. The run stops at the first point at the threshold or past ``max_s`` (a
+    callback can end brax's run only there, so it may overrun ``max_s`` by up to one interval between points).
 
     PPO's points come from its ``policy_params_fn``. brax's SAC (0.14.2) has no such callback and its
     ``progress_fn`` gets metrics only, so for the run ``brax.training.acting.Evaluator`` is replaced by one that
