@@ -1,19 +1,22 @@
 """Training speed of the JAX learners: throughput next to the raw env, and time to an LQR-level policy.
 
-Two measurements, each against a baseline measured in the same run:
+Three measurements, the first two against baselines measured in the same run:
 
 1. **Throughput** (``--batches``, default 1,024 and 4,096 copies): env steps per second of PPO's and SAC's
    training iterations (``Learner.update``, jitted and chained with ``lax.fori_loop``; compile excluded), next to
    the raw env's steps per second for the same copies (``scg_jax.rollout.make_rollout`` with auto-reset and a
    constant action: the bare cost of simulating what the learner consumes). The ratio is the share of the env's
    speed the learner keeps.
-2. **Time to threshold** (``--threshold``): wall time from the start of training (compile included, evaluation
-   excluded) until the deterministic policy's stabilisation RMSE, evaluated on ``--eval-episodes`` episodes by
-   ``scg_algorithms.evaluation.evaluate``, is within ``--rmse-factor`` (1.5) times LQR's on the same episodes, with no
-   crash. Our PPO is trained in chunks of iterations and evaluated after each; brax's PPO (through
-   ``scg_jax.adapters.brax``) with the same env, copies, rollout length, epochs, minibatches, learning rate and
-   networks, evaluated in its ``policy_params_fn`` callback at ``--brax-evals`` points. The ratio brax / ours of
-   time to threshold is printed (> 1: ours is faster).
+2. **Time to threshold** (``--threshold``, ``--ttq-algos``, default ppo, sac, ddpg and td3): wall time from the
+   start of training (compile included, evaluation excluded) until the deterministic policy's RMSE (stabilisation
+   or tracking), evaluated on ``--eval-episodes`` episodes by ``scg_algorithms.evaluation.evaluate``, is within
+   ``--rmse-factor`` (1.5) times LQR's on the same episodes, with no crash. Each of our learners (one code path,
+   ``race_to_threshold``) is trained in chunks of iterations and evaluated after each, the off-policy ones' random
+   warm-up in the first chunk; env steps are counted as the learner counts them. Beside them (``--brax``), brax's
+   PPO and SAC (through ``scg_jax.adapters.brax``) with the same env and the config's matched hyperparameters
+   (``brax_arguments`` says which could not be matched), evaluated the same way at ``--brax-evals`` points. The
+   table pairs PPO with brax's PPO and SAC, DDPG and TD3 with brax's SAC, with the ratio brax / ours of the time to
+   threshold (> 1: ours is faster). Every run stops at the threshold or past ``--max-seconds``.
 
 3. **Run split** (``--split``): where the wall time of one whole training run at the config's settings goes:
    collection (env and policy, ``Learner.collect``), update (losses, gradients, optimiser) and everything else
@@ -23,7 +26,8 @@ Two measurements, each against a baseline measured in the same run:
    on ``--eval-episodes`` episodes, for PPO and SAC); tests/test_learning.py checks learning at a small budget only.
 
 The env and the hyperparameters are those of the config (default ``configs/cartpole_stabilization.yaml``, its
-``training.ppo`` section). Results go to ``benchmarks/results/train.json``.
+``training.<algo>`` sections). Results go to ``benchmarks/results/train.json`` and the page
+``docs/benchmarks/train.md`` (``--markdown``), one section per config: a run adds or replaces its own.
 
 Run ``python benchmarks/train.py --help``; see benchmarks/README.md.
 """
@@ -37,15 +41,18 @@ import sys
 import time
 import warnings
 from pathlib import Path
+from unittest import mock
 
 import jax
 import jax.numpy as jnp
 from machine import (  # benchmarks/machine.py, beside this script
     load_average,
+    machine_line,
+    markdown_cell,
+    markdown_table,
     median_seconds,
     print_machine,
     run_record,
-    write_markdown_table,
 )
 from rich.console import Console
 from rich.table import Table
@@ -56,12 +63,8 @@ from scg_algorithms.lqr import make_lqr
 from scg_algorithms.rl.envs import policy_action_to_input
 from scg_algorithms.rl.policy import algorithm_module
 from scg_jax.config import load_config, make_from_config
-from scg_jax.files import write_json
+from scg_jax.files import write_atomic, write_json
 from scg_jax.rollout import make_rollout
-
-# Goals of the issue (printed next to the measurement; never an error exit).
-GOAL_CARTPOLE_S = 60.0
-GOAL_QUADROTOR_2D_S = 600.0
 
 
 def _config(cfg, algo: str, **changes):
@@ -211,6 +214,13 @@ def run_split(env, params, cfg, algo: str, repeats: int, episodes: int = 32) -> 
 
 
 # --------------------------------------------------------------------------------------------- time to threshold
+# Learners whose time to threshold is measured, and the brax learner each one is raced against.
+TTQ_ALGOS = ("ppo", "sac", "ddpg", "td3")
+BRAX_RIVAL = {"ppo": "ppo", "sac": "sac", "ddpg": "sac", "td3": "sac"}
+# The issue's goal: ours reaches the threshold at least this many times sooner than brax's (printed, never an exit).
+GOAL_BRAX_OVER_OURS = 5.0
+
+
 def lqr_threshold(env, params, eval_key, episodes: int, factor: float) -> dict:
     summary = evaluate(env, params, make_lqr(env, params), eval_key, episodes, measure_time=False).summary
     return {"lqr_rmse": summary["rmse"], "threshold_rmse": factor * summary["rmse"]}
@@ -224,49 +234,81 @@ def _meets(summary: dict, threshold: float) -> bool:
     return summary["crash_rate"] == 0.0 and summary["rmse"] <= threshold
 
 
-def ours_time_to_threshold(env, params, cfg, threshold, eval_key, episodes, max_s, chunk_s, console) -> dict:
-    """Train our PPO in chunks of iterations; evaluate after each; stop at the threshold or the time limit."""
-    config = _config(cfg, "ppo")
-    learner = algorithm_module("ppo", "make_learner")(config, env)
+def race_to_threshold(
+    init, run_chunk, evaluate_state, *, num_iterations: int, steps_per_iteration: int, warmup_iterations: int,
+    threshold: float, max_s: float, chunk_s: float, report=lambda point: None, clock=time.perf_counter,
+) -> dict:  # fmt: skip
+    """Train in chunks of iterations, evaluate after each, stop at the threshold, the time limit or the budget.
+
+    Args:
+        init: ``init() -> state`` (timed: it is part of training). run_chunk: ``run_chunk(state, n) -> state`` after
+            ``n`` iterations, finished (blocked on). evaluate_state: ``evaluate_state(state) -> summary`` with
+            ``rmse`` and ``crash_rate`` (not timed).
+        num_iterations: the budget. steps_per_iteration: env steps of one iteration, as the learner counts them.
+        warmup_iterations: iterations that act at random and learn nothing (the off-policy warm-up): the first
+            chunk runs them all and is evaluated once, at its end. threshold: RMSE to reach with no crash. max_s:
+            give up after this much training time (s). chunk_s: training time between evaluations (s); a chunk at
+            most doubles the previous one, so the first evaluations come early. report: called with every curve
+            point. clock:
+            seconds (``time.perf_counter``; a test passes a fake).
+
+    Returns:
+        ``reached``, ``time_s`` (training wall time, compile included, evaluation excluded), ``env_steps`` (at the
+        threshold, else at the end) and ``curve`` (one point per evaluation: time_s, env_steps, rmse, crash_rate).
+    """
+    curve = []
+    eval_s = 0.0
+    start = clock()
+    state = init()
+    iterations, n = 0, max(1, warmup_iterations)
+    elapsed = 0.0
+    while iterations < num_iterations:
+        n = min(n, num_iterations - iterations)
+        tick = clock()
+        state = run_chunk(state, n)
+        per_iteration_s = (clock() - tick) / n  # the first chunk includes the compile
+        iterations += n
+        tick = clock()
+        elapsed = tick - start - eval_s
+        summary = evaluate_state(state)
+        eval_s += clock() - tick
+        point = _point(elapsed, iterations * steps_per_iteration, summary)
+        curve.append(point)
+        report(point)
+        if _meets(summary, threshold):
+            return {"reached": True, "time_s": elapsed, "env_steps": point["env_steps"], "curve": curve}
+        if elapsed > max_s:
+            break
+        n = max(1, min(2 * n, int(chunk_s / max(per_iteration_s, 1e-6))))
+    return {"reached": False, "time_s": elapsed, "env_steps": iterations * steps_per_iteration, "curve": curve}
+
+
+def ours_time_to_threshold(env, params, cfg, algo, threshold, eval_key, episodes, max_s, chunk_s, console) -> dict:
+    """Our learner ``algo`` (any of the registry's JAX learners, its config's ``training.<algo>`` section) trained by
+    ``race_to_threshold``: chunks of ``Learner.update`` in one jitted ``fori_loop`` whose length is traced (a new
+    chunk length never recompiles), the deterministic policy evaluated after each chunk."""
+    config = _config(cfg, algo)
+    learner = algorithm_module(algo, "make_learner")(config, env)
     evaluate_policy = _policy_evaluator(
-        env, params, episodes, lambda p: lambda obs: learner.make_policy(p)(obs, None), "ppo", config.action_scale
+        env, params, episodes, lambda p: lambda obs: learner.make_policy(p)(obs, None), algo, config.action_scale
     )
-    # The chunk length is traced (a while loop), so changing it never recompiles.
     chunk_jit = jax.jit(
         lambda state, params, n: jax.lax.fori_loop(0, n, lambda i, s: learner.update(s, params)[0], state)
     )
-    curve = []
-    eval_s = 0.0
-    start = time.perf_counter()
-    state = jax.jit(learner.init)(jax.random.key(0), params)
-    iterations, n = 0, 1
-    while iterations < learner.num_iterations:
-        n = min(n, learner.num_iterations - iterations)
-        tick = time.perf_counter()
-        state = jax.block_until_ready(chunk_jit(state, params, jnp.int32(n)))
-        per_iteration_s = (time.perf_counter() - tick) / n  # the first chunk includes the compile
-        iterations += n
-        clock = time.perf_counter() - start - eval_s
-        tick = time.perf_counter()
-        summary = evaluate_policy(learner.policy_params(state), eval_key).summary
-        eval_s += time.perf_counter() - tick
-        steps = iterations * config.batch_size
-        curve.append(
-            {"time_s": clock, "env_steps": steps, "rmse": summary["rmse"], "crash_rate": summary["crash_rate"]}
+
+    def report(point):
+        console.print(
+            f"  {algo:<5} t={point['time_s']:6.1f} s  steps={point['env_steps']:>9,}  rmse={point['rmse']:.4f}"
         )
-        console.print(f"  ours  t={clock:6.1f} s  steps={steps:>9,}  rmse={summary['rmse']:.4f}")
-        if _meets(summary, threshold):
-            return {"reached": True, "time_s": clock, "env_steps": steps, "curve": curve}
-        if clock > max_s:
-            break
-        # At most doubling, so the first evaluations come early.
-        n = max(1, min(2 * n, int(chunk_s / max(per_iteration_s, 1e-6))))
-    return {
-        "reached": False,
-        "time_s": time.perf_counter() - start - eval_s,
-        "env_steps": iterations * config.batch_size,
-        "curve": curve,
-    }
+
+    return race_to_threshold(
+        lambda: jax.block_until_ready(jax.jit(learner.init)(jax.random.key(0), params)),
+        lambda state, n: jax.block_until_ready(chunk_jit(state, params, jnp.int32(n))),
+        lambda state: evaluate_policy(learner.policy_params(state), eval_key).summary,
+        num_iterations=learner.num_iterations, steps_per_iteration=learner.steps_per_iteration,
+        warmup_iterations=int(getattr(config, "warmup_iterations", 0)), threshold=threshold, max_s=max_s,
+        chunk_s=chunk_s, report=report,
+    )  # fmt: skip
 
 
 # brax_ppo.train's arguments that are fields of our PPO config: brax's name -> ours.
@@ -275,67 +317,246 @@ _BRAX_PPO = {
     "num_updates_per_batch": "num_epochs", "learning_rate": "learning_rate", "entropy_cost": "ent_coef",
     "discounting": "gamma", "gae_lambda": "gae_lambda", "clipping_epsilon": "clip_eps",
     "max_grad_norm": "max_grad_norm", "normalize_observations": "normalize_observations",
-    "reward_scaling": "reward_scale",
+    "reward_scaling": "reward_scale", "num_minibatches": "num_minibatches",
+}  # fmt: skip
+
+# brax_sac.train's arguments that are fields of our SAC config: brax's name -> ours. brax has one learning rate for
+# the actor and the critics (ours: actor_lr and critic_lr; the comparison needs them equal) and fills its replay
+# with min_replay_size transitions before learning (ours: warmup_steps, rounded up to whole iterations).
+_BRAX_SAC = {
+    "num_timesteps": "total_env_steps", "num_envs": "num_envs", "batch_size": "batch_size",
+    "learning_rate": "actor_lr", "discounting": "gamma", "tau": "tau", "max_replay_size": "buffer_size",
+    "min_replay_size": "warmup_steps", "reward_scaling": "reward_scale",
+    "normalize_observations": "normalize_observations",
 }  # fmt: skip
 
 
-def brax_time_to_threshold(env, params, cfg, threshold, eval_key, episodes, max_s, num_evals, console) -> dict:
-    """brax PPO with the same env and matched hyperparameters, evaluated in its ``policy_params_fn``."""
-    from brax.training.agents.ppo import networks as ppo_networks
-    from brax.training.agents.ppo import train as brax_ppo
+def brax_arguments(algo: str, config) -> dict:
+    """The keyword arguments of brax's ``ppo.train`` or ``sac.train`` that match our ``config`` of ``algo``, besides
+    the env, the evaluation points and the callbacks.
 
-    from scg_jax.adapters.brax import BraxEnv, wrap_for_training
+    Matched: PPO, every ``_BRAX_PPO`` entry, the batch (one unroll of every copy per update, as ours:
+    ``batch_size = num_envs // num_minibatches``), the actor's and the critic's hidden sizes and the activation.
+    SAC, every ``_BRAX_SAC`` entry, the gradient steps per env step (brax's ``grad_updates_per_step`` per step of
+    all ``num_envs`` copies is ``utd * num_envs``), the hidden sizes (actor and both critics) and the activation.
 
-    config = _config(cfg, "ppo")
+    Not matched (brax has no such option, or fixes it): PPO's value-loss coefficient (brax 0.5) and network
+    initialisation. SAC's temperature (brax starts at alpha = 1 with Adam at 3e-4 towards an entropy target of
+    -0.5 per action dimension; ours ``init_alpha``, ``alpha_lr`` and ``target_entropy_per_action``), the actor's
+    standard deviation (brax softplus + 0.001; ours a log-std clipped to [``log_std_min``, ``log_std_max``]), the
+    gradient-norm clip (brax none), the pre-fill (brax acts with its initial policy; ours uniformly at random),
+    time-limit ends (brax leaves them out of the critic loss; ours bootstraps them), and a ``critic_lr`` other than
+    ``actor_lr`` (refused).
+
+    Raises:
+        SystemExit: a SAC config brax cannot express (``critic_lr != actor_lr``, or ``utd * num_envs`` not a whole
+            number of gradient steps per step of the copies).
+    """
+    import scg_jax.adapters.brax  # noqa: F401  (before brax: drops mujoco's "Failed to import warp" lines)
+    from scg_algorithms.rl.networks import activation
+
+    if algo == "ppo":
+        from brax.training.agents.ppo import networks as ppo_networks
+
+        network = functools.partial(
+            ppo_networks.make_ppo_networks, policy_hidden_layer_sizes=tuple(config.actor_hidden),
+            value_hidden_layer_sizes=tuple(config.critic_hidden), activation=activation(config.activation),
+        )  # fmt: skip
+        table, extra = _BRAX_PPO, {"batch_size": config.num_envs // config.num_minibatches}
+    else:
+        from brax.training.agents.sac import networks as sac_networks
+
+        if config.critic_lr != config.actor_lr:
+            raise SystemExit(
+                f"brax comparison: brax's SAC has one learning rate; training.sac.critic_lr ({config.critic_lr}) must "
+                f"equal training.sac.actor_lr ({config.actor_lr})"
+            )
+        per_step = config.utd * config.num_envs
+        if per_step != round(per_step):
+            raise SystemExit(
+                f"brax comparison: training.sac.utd * num_envs must be a whole number of gradient steps per step of "
+                f"the copies for brax's grad_updates_per_step, got {config.utd} * {config.num_envs} = {per_step:g}"
+            )
+        network = functools.partial(
+            sac_networks.make_sac_networks, hidden_layer_sizes=tuple(config.hidden_sizes),
+            activation=activation(config.activation),
+        )  # fmt: skip
+        table, extra = _BRAX_SAC, {"grad_updates_per_step": round(per_step)}
+    return {
+        **{brax: getattr(config, ours) for brax, ours in table.items()},
+        **extra,
+        "network_factory": network,
+        "deterministic_eval": True,
+    }
+
+
+class _Stop(Exception):
+    """Raised from brax's callback to end its run (threshold reached or time limit passed)."""
+
+
+def _brax_env(env, action_scale: float):
+    """``BraxEnv(env)``; with an ``action_scale`` other than 1, brax's action ``a`` becomes ``action_scale * a``
+    (clipped to [-1, 1] first), as our learners' ``policy_action_to_input`` does."""
+    from brax.envs.base import Wrapper
+
+    from scg_jax.adapters.brax import BraxEnv
+
+    base = BraxEnv(env)
+    if action_scale == 1.0:
+        return base
+
+    class ScaledActions(Wrapper):
+        def step(self, state, action):
+            return self.env.step(state, action_scale * jnp.clip(action, -1.0, 1.0))
+
+    return ScaledActions(base)
+
+
+def brax_time_to_threshold(env, params, cfg, algo, threshold, eval_key, episodes, max_s, num_evals, console) -> dict:
+    """brax's PPO or SAC (``algo``) on the same env with our config's matched hyperparameters (``brax_arguments``),
+    its deterministic policy evaluated by our harness at ``num_evals`` points, as ours (evaluation excluded from the
+    clock); brax's own evaluator is off. The run stops at the first point at the threshold or past ``max_s`` (a
+    callback can end brax's run only there, so it may overrun ``max_s`` by up to one interval between points).
+
+    PPO's points come from its ``policy_params_fn``. brax's SAC (0.14.2) has no such callback and its
+    ``progress_fn`` gets metrics only, so for the run ``brax.training.acting.Evaluator`` is replaced by one that
+    keeps the parameters it is handed (and evaluates nothing); ``progress_fn``, called right after, evaluates them.
+    """
+    # Before brax itself: importing brax through the adapter drops mujoco's "Failed to import warp" lines.
+    from scg_jax.adapters.brax import wrap_for_training
+
     if env.action_mode != "normalized":
         raise SystemExit("brax comparison: the config's env must use action_mode: normalized")
-    curve = []
-    eval_time = [0.0]
-    start = time.perf_counter()
-    reached = {}
+    from brax.training import acting
+    from brax.training.agents.ppo import train as brax_ppo
+    from brax.training.agents.sac import train as brax_sac
 
-    evaluators = {}
+    config = _config(cfg, algo)
+    arguments = brax_arguments(algo, config)
+    curve, evaluators, eval_s = [], {}, [0.0]
 
-    def policy_params_fn(step, make_policy, brax_params):
-        if reached:
-            return
+    def on_policy(step, policy_fn, brax_params):
         tick = time.perf_counter()
+        clock = tick - start - eval_s[0]
         if "fn" not in evaluators:
             evaluators["fn"] = _policy_evaluator(
-                env,
-                params,
-                episodes,
-                lambda p: lambda obs: make_policy(p, deterministic=True)(obs, jax.random.key(0))[0],
-                "brax_ppo",
-            )
+                env, params, episodes, lambda p: lambda obs: policy_fn(p)(obs, jax.random.key(0))[0], f"brax_{algo}",
+                config.action_scale,
+            )  # fmt: skip
         summary = evaluators["fn"](brax_params, eval_key).summary
-        eval_time[0] += time.perf_counter() - tick
-        clock = time.perf_counter() - start - eval_time[0]
-        curve.append(
-            {"time_s": clock, "env_steps": int(step), "rmse": summary["rmse"], "crash_rate": summary["crash_rate"]}
-        )
-        console.print(f"  brax  t={clock:6.1f} s  steps={int(step):>9,}  rmse={summary['rmse']:.4f}")
-        if _meets(summary, threshold):
-            reached.update(time_s=clock, env_steps=int(step))
+        eval_s[0] += time.perf_counter() - tick
+        curve.append(_point(clock, int(step), summary))
+        console.print(f"  brax {algo:<4} t={clock:6.1f} s  steps={int(step):>9,}  rmse={summary['rmse']:.4f}")
+        if _meets(summary, threshold) or clock > max_s:
+            raise _Stop
 
-    num_minibatches = config.num_minibatches
-    batch_size = config.num_envs // num_minibatches  # one unroll of every copy per update, as ours
-    network = functools.partial(
-        ppo_networks.make_ppo_networks,
-        policy_hidden_layer_sizes=tuple(config.actor_hidden),
-        value_hidden_layer_sizes=tuple(config.critic_hidden),
-    )
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        brax_ppo.train(
-            BraxEnv(env), episode_length=env.num_steps, wrap_env_fn=wrap_for_training, batch_size=batch_size,
-            num_minibatches=num_minibatches, network_factory=network, num_evals=num_evals, num_eval_envs=16, seed=0,
-            policy_params_fn=policy_params_fn, **{brax: getattr(config, ours) for brax, ours in _BRAX_PPO.items()},
-        )  # fmt: skip
-    total = time.perf_counter() - start - eval_time[0]
-    if reached:
-        return {"reached": True, **reached, "curve": curve}
-    return {"reached": False, "time_s": total, "env_steps": config.total_env_steps, "curve": curve}
+    class Recorder:
+        """Stands in for brax's ``acting.Evaluator`` in the SAC run: keeps the policy and the last parameters."""
+
+        def __init__(self, eval_env, eval_policy_fn, **unused):
+            Recorder.policy_fn = eval_policy_fn
+
+        def run_evaluation(self, policy_params, training_metrics, aggregate_episodes=True):
+            Recorder.params = policy_params
+            return dict(training_metrics)
+
+    common = dict(
+        environment=_brax_env(env, config.action_scale), episode_length=env.num_steps, wrap_env_fn=wrap_for_training,
+        num_evals=num_evals, num_eval_envs=16, seed=0,
+    )  # fmt: skip
+    start = time.perf_counter()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            if algo == "ppo":
+                brax_ppo.train(
+                    **common, **arguments, run_evals=False,
+                    policy_params_fn=lambda step, make_policy, p: on_policy(
+                        step, functools.partial(make_policy, deterministic=True), p
+                    ),
+                )  # fmt: skip
+            else:
+                with mock.patch.object(acting, "Evaluator", Recorder):
+                    brax_sac.train(
+                        **common, **arguments,
+                        progress_fn=lambda step, metrics: on_policy(step, Recorder.policy_fn, Recorder.params),
+                    )  # fmt: skip
+    except _Stop:
+        pass
+    last = curve[-1] if curve else {"time_s": time.perf_counter() - start - eval_s[0], "env_steps": 0}
+    reached = bool(curve) and _meets(curve[-1], threshold)
+    return {"reached": reached, "time_s": last["time_s"], "env_steps": last["env_steps"], "curve": curve}
+
+
+def brax_over_ours(ours: dict, brax: dict) -> tuple[float | None, str]:
+    """brax's time to threshold over ours (> 1: ours is faster) and how to read it: ``"="`` both reached, ``">="``
+    only ours (brax's time is where it stopped), ``"<="`` only brax's; ``(None, "")`` when neither reached."""
+    if not ours["reached"] and not brax["reached"]:
+        return None, ""
+    relation = {(True, True): "=", (True, False): ">=", (False, True): "<="}[(ours["reached"], brax["reached"])]
+    return brax["time_s"] / max(ours["time_s"], 1e-9), relation
+
+
+def ttq_rows(ours: dict, brax: dict) -> list[dict]:
+    """One row per learner of ``ours`` (``{algo: result}``): its time and env steps to the threshold, its brax rival's
+    (``BRAX_RIVAL``; from ``brax``, ``{brax algo: result}``, None where not run) and the ratio brax / ours."""
+    rows = []
+    for algo, result in ours.items():
+        rival = BRAX_RIVAL[algo]
+        theirs = brax.get(rival)
+        ratio, relation = brax_over_ours(result, theirs) if theirs else (None, "")
+        rows.append({"algo": algo, "ours": result, "brax_algo": rival, "brax": theirs, "brax_over_ours": ratio,
+                     "relation": relation})  # fmt: skip
+    return rows
+
+
+def _time_cell(result: dict | None) -> str:
+    if result is None:
+        return "not run"
+    return f"{result['time_s']:.1f}" if result["reached"] else f"not reached ({result['time_s']:.1f})"
+
+
+def ttq_table_rows(rows: list[dict]) -> list[list]:
+    """``ttq_rows`` as table cells: learner, our time (s), our env steps, brax's learner, its time and env steps, and
+    brax / ours (prefixed ">=" or "<=" when only one side reached the threshold)."""
+    cells = []
+    for row in rows:
+        ours, brax = row["ours"], row["brax"]
+        prefix = "" if row["relation"] in ("", "=") else row["relation"] + " "
+        ratio = "" if row["brax_over_ours"] is None else f"{prefix}{row['brax_over_ours']:.2f}"
+        cells.append([
+            row["algo"], _time_cell(ours), ours["env_steps"], f"brax {row['brax_algo'].upper()}", _time_cell(brax),
+            None if brax is None else brax["env_steps"], ratio,
+        ])  # fmt: skip
+    return cells
+
+
+TTQ_COLUMNS = ["learner", "time (s)", "env steps", "brax", "brax time (s)", "brax env steps", "brax / ours"]
+
+
+# --------------------------------------------------------------------------------------------- the page
+PAGE_TITLE = "Training speed"
+PAGE_NOTE = "One section per config: a run adds or replaces its own."
+
+
+def merge_section(page: str, heading: str, body: str) -> str:
+    """``page`` (a generated Markdown page, possibly empty) with its ``## heading`` section replaced by ``body``, or
+    ``body`` appended as a new section; the other sections are kept as they were, and the title and the line
+    saying the page is generated are written anew (anything else before the first section is dropped)."""
+    sections, current = {}, None
+    for line in page.splitlines():
+        if line.startswith("## "):
+            current = line[3:].strip()
+            sections[current] = []
+        elif current is not None:
+            sections[current].append(line)
+    sections[heading.strip()] = ["", *body.strip().splitlines(), ""]
+    lines = [f"# {PAGE_TITLE}", "", f"Generated by `benchmarks/train.py`; do not edit by hand. {PAGE_NOTE}", ""]
+    for name, text in sections.items():
+        while text and not text[-1].strip():
+            text = text[:-1]
+        lines += [f"## {name}", *text, ""]
+    return "\n".join(lines)
 
 
 # --------------------------------------------------------------------------------------------- main
@@ -351,7 +572,12 @@ def main(argv=None) -> int:
         "--split", action=argparse.BooleanOptionalAction, default=True, help="where a whole run's time goes"
     )
     parser.add_argument("--threshold", action=argparse.BooleanOptionalAction, default=True, help="time to threshold")
-    parser.add_argument("--brax", action=argparse.BooleanOptionalAction, default=True, help="brax PPO comparison")
+    parser.add_argument(
+        "--ttq-algos", nargs="+", default=list(TTQ_ALGOS), choices=TTQ_ALGOS, help="learners timed to the threshold"
+    )
+    parser.add_argument(
+        "--brax", action=argparse.BooleanOptionalAction, default=True, help="brax's PPO and SAC beside ours"
+    )
     parser.add_argument("--rmse-factor", type=float, default=1.5, help="threshold: this times LQR's RMSE")
     parser.add_argument("--eval-episodes", type=int, default=32, help="episodes per evaluation")
     parser.add_argument("--max-seconds", type=float, default=300.0, help="give up after this much training time")
@@ -362,7 +588,7 @@ def main(argv=None) -> int:
         "--markdown",
         type=Path,
         default=Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "train.md",
-        help="generated table (every run; pass another path to keep the committed page)",
+        help="generated page; a run adds or replaces its config's section (another path keeps the committed page)",
     )
     args = parser.parse_args(argv)
     console = Console()
@@ -373,7 +599,9 @@ def main(argv=None) -> int:
         **run_record("train"),
         "config": str(args.config),
         "overrides": args.set,
-        "hyperparameters": {algo: dataclasses.asdict(_config(cfg, algo)) for algo in ("ppo", "sac")},
+        "hyperparameters": {
+            algo: dataclasses.asdict(_config(cfg, algo)) for algo in dict.fromkeys([*args.algos, *args.ttq_algos])
+        },
     }
 
     print_machine(console, record)
@@ -432,61 +660,77 @@ def main(argv=None) -> int:
         console.print(
             f"LQR rmse {threshold['lqr_rmse']:.4f}; threshold {args.rmse_factor} x = {threshold['threshold_rmse']:.4f}"
         )
-        # Both runs: the same env, config, threshold, evaluation episodes and time limit.
-        race = (env, params, cfg, threshold["threshold_rmse"], eval_key, args.eval_episodes, args.max_seconds)
-        ours = ours_time_to_threshold(*race, args.chunk_seconds, console)
-        record["time_to_threshold"] = {**threshold, "rmse_factor": args.rmse_factor, "ours": ours}
-        brax = None
+        # Every run: the same env, threshold, evaluation episodes and time limit.
+        race = (env, params, cfg)
+        limits = (threshold["threshold_rmse"], eval_key, args.eval_episodes, args.max_seconds)
+        ours = {}
+        for algo in args.ttq_algos:
+            console.print(f"time to threshold: ours, {algo}")
+            ours[algo] = ours_time_to_threshold(*race, algo, *limits, args.chunk_seconds, console)
+        brax = {}
         if args.brax:
-            brax = brax_time_to_threshold(*race, args.brax_evals, console)
-            record["time_to_threshold"]["brax"] = brax
-        goal = GOAL_CARTPOLE_S if env.system.name == "cartpole" else GOAL_QUADROTOR_2D_S
+            for rival in dict.fromkeys(BRAX_RIVAL[algo] for algo in args.ttq_algos):
+                console.print(f"time to threshold: brax's {rival}")
+                brax[rival] = brax_time_to_threshold(*race, rival, *limits, args.brax_evals, console)
+        rows = ttq_rows(ours, brax)
+        record["time_to_threshold"] = {
+            **threshold, "rmse_factor": args.rmse_factor, "ours": ours, "brax": brax,
+            "brax_over_ours": {row["algo"]: row["brax_over_ours"] for row in rows},
+        }  # fmt: skip
         table = Table(title=f"time to {args.rmse_factor} x LQR's RMSE ({threshold['threshold_rmse']:.4f})")
-        for column in ("learner", "reached", "time s (compile incl.)", "env steps", f"goal {goal:.0f} s"):
+        for column in TTQ_COLUMNS:
             table.add_column(column, justify="right")
-        for name, result in (("ours (PPO)", ours), ("brax PPO", brax)):
-            if result is None:
-                continue
-            met = "met" if result["reached"] and result["time_s"] <= goal else "missed"
-            table.add_row(name, str(result["reached"]), f"{result['time_s']:.1f}", f"{result['env_steps']:,}", met)
+        for cells in ttq_table_rows(rows):
+            table.add_row(*(markdown_cell(cell) for cell in cells))
         console.print(table)
-        if brax is not None and ours["reached"]:
-            ratio = brax["time_s"] / ours["time_s"]
-            prefix = "" if brax["reached"] else ">= "
-            record["time_to_threshold"]["brax_over_ours"] = ratio
-            console.print(f"brax / ours time to threshold: {prefix}{ratio:.2f} (> 1: ours is faster)")
+        console.print(f"goal: brax / ours >= {GOAL_BRAX_OVER_OURS:g} for every learner (issue 28)")
     record["load_average_end"] = load_average()
     args.json.parent.mkdir(parents=True, exist_ok=True)
     write_json(args.json, record)
     console.print(f"wrote {args.json}")
-    threshold = record.get("time_to_threshold", {})
-    notes = [f"Config {args.config}; the raw env (make_rollout, constant action) is the baseline in the same run."]
-    for name in ("ours", "brax"):
-        result = threshold.get(name)
-        if result:
-            notes.append(
-                f"- time to {args.rmse_factor}x LQR's RMSE, {name}: {result['time_s']:.1f} s, "
-                f"{result['env_steps']:,} env steps ({'reached' if result['reached'] else 'not reached'})"
-            )
+    heading = f"`{Path(args.config).as_posix()}`"
+    page = merge_section(args.markdown.read_text() if args.markdown.exists() else "", heading, section(record))
+    write_atomic(args.markdown, lambda file: file.write(page.encode()))
+    console.print(f"wrote {args.markdown} (section {heading})")
+    return 0
+
+
+def section(record: dict) -> str:
+    """The page's section for one run: overrides, the machine line, the throughput table, the time-to-threshold
+    table and the run split."""
+    lines = []
+    if record["overrides"]:
+        lines += ["Overrides: " + ", ".join(f"`{item}`" for item in record["overrides"]) + ".", ""]
+    lines += [machine_line(record), ""]
+    if record.get("throughput"):
+        lines += [
+            "Training throughput; the raw env (make_rollout, constant action) is the baseline in the same run:",
+            "",
+        ]
+        lines += markdown_table(
+            ["learner", "copies", "train steps/s", "raw env steps/s", "train / env", "compile (s)"],
+            [[r["algo"], r["batch"], r["train_steps_per_s"], r["env_steps_per_s"], r["train_over_env"], r["compile_s"]]
+             for r in record["throughput"]],
+        )  # fmt: skip
+        lines.append("")
+    threshold = record.get("time_to_threshold")
+    if threshold:
+        lines += [
+            f"Time to {threshold['rmse_factor']}x LQR's RMSE ({threshold['threshold_rmse']:.4f}; LQR "
+            f"{threshold['lqr_rmse']:.4f}), no crash: training wall time, compile included, evaluation excluded.",
+            "",
+        ]
+        lines += markdown_table(TTQ_COLUMNS, ttq_table_rows(ttq_rows(threshold["ours"], threshold["brax"])))
+        lines.append("")
     for row in record.get("run_split", []):
-        notes.append(
+        lines.append(
             f"- a whole {row['algo']} run ({row['copies']:,} copies, {row['iterations']} iterations, "
             f"{row['run_s']:.1f} s + {row['compile_s']:.1f} s compile): collection {row['collect_share']:.0%}, "
             f"update {row['update_share']:.0%}, everything else {row['other_share']:.0%}; final policy "
             f"{row['final_rmse_over_lqr']:.2f}x LQR's RMSE, crash rate {row['final_crash_rate']:.0%} "
             f"({'learned' if row['learned'] else 'NOT learned'} within the default budget)"
         )
-    if "brax_over_ours" in threshold:
-        notes.append(f"- brax / ours: {threshold['brax_over_ours']:.2f}")
-    write_markdown_table(
-        args.markdown, "Training speed", record,
-        ["learner", "copies", "train steps/s", "raw env steps/s", "train / env", "compile (s)"],
-        [[r["algo"], r["batch"], r["train_steps_per_s"], r["env_steps_per_s"], r["train_over_env"], r["compile_s"]]
-         for r in record.get("throughput", [])],
-        notes="\n".join(notes),
-    )  # fmt: skip
-    console.print(f"wrote {args.markdown}")
-    return 0
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

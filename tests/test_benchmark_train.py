@@ -1,0 +1,153 @@
+"""benchmarks/train.py's pure parts: the brax argument tables, the chunked race to the threshold, the table's ratios
+and the page's sections. No learning run here (the script itself is the measurement)."""
+
+import dataclasses
+import importlib.util
+import inspect
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    sys.path.insert(0, str(BENCHMARKS))  # the script imports benchmarks/machine.py by its plain name
+    try:
+        spec = importlib.util.spec_from_file_location("benchmark_train", BENCHMARKS / "train.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    return module
+
+
+def _fields(config_class) -> set:
+    return {field.name for field in dataclasses.fields(config_class)}
+
+
+def test_brax_tables_map_fields_of_our_configs_to_arguments_of_brax_trainers(bench):
+    from brax.training.agents.ppo import train as brax_ppo
+    from brax.training.agents.sac import train as brax_sac
+
+    from scg_algorithms.ppo import Config as PPOConfig
+    from scg_algorithms.sac import Config as SACConfig
+
+    for table, config_class, train in ((bench._BRAX_PPO, PPOConfig, brax_ppo.train),
+                                       (bench._BRAX_SAC, SACConfig, brax_sac.train)):  # fmt: skip
+        assert set(table.values()) <= _fields(config_class)
+        assert set(table) <= set(inspect.signature(train).parameters)
+    # SAC's table covers what the task asks to match (copies, batch, learning rate, discount, tau, replay size).
+    assert {"num_envs", "batch_size", "learning_rate", "discounting", "tau", "max_replay_size"} <= set(bench._BRAX_SAC)
+
+
+def test_brax_sac_arguments_carry_our_values(bench):
+    from brax.training.agents.sac import train as brax_sac
+
+    from scg_algorithms.base import parse_options
+    from scg_algorithms.sac import Config
+
+    options = {"num_envs": 32, "utd": 0.5, "batch_size": 128, "actor_lr": 3e-4, "critic_lr": 3e-4, "gamma": 0.97,
+               "hidden_sizes": [32, 16]}  # fmt: skip
+    config = parse_options(Config, options, "training.sac")
+    arguments = bench.brax_arguments("sac", config)
+    assert set(arguments) <= set(inspect.signature(brax_sac.train).parameters)
+    assert (arguments["num_envs"], arguments["batch_size"], arguments["learning_rate"], arguments["discounting"]) == (
+        32, 128, 3e-4, 0.97,
+    )  # fmt: skip
+    # 0.5 gradient steps per transition, brax's per step of the 32 copies: 16.
+    assert arguments["grad_updates_per_step"] == 16
+    assert arguments["network_factory"].keywords["hidden_layer_sizes"] == (32, 16)
+
+    with pytest.raises(SystemExit, match=r"critic_lr \(0.001\) must equal training.sac.actor_lr \(0.0003\)"):
+        bench.brax_arguments("sac", dataclasses.replace(config, critic_lr=1e-3))
+    # 0.25 * 6 copies = 1.5 gradient steps per step of the copies (3 per iteration of 2 steps): not brax's integer.
+    odd = parse_options(Config, {"num_envs": 6, "rollout_steps": 2, "utd": 0.25}, "training.sac")
+    with pytest.raises(SystemExit, match=r"utd \* num_envs .* got 0.25 \* 6 = 1.5"):
+        bench.brax_arguments("sac", odd)
+
+
+class _FakeClock:
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self):
+        return self.now
+
+
+def _race(bench, rmse_at, *, num_iterations=1000, warmup=0, max_s=1e9, chunk_s=1.25, compile_s=2.0):
+    """The race on a fake learner: an iteration takes 0.125 s (the first chunk also ``compile_s``), an evaluation 5 s
+    (not counted); the state is the iteration count and the RMSE ``rmse_at(iterations)``. Times are binary
+    fractions, so the clock's sums are exact."""
+    clock = _FakeClock()
+    chunks = []
+
+    def run_chunk(state, n):
+        clock.now += 0.125 * n + (compile_s if not chunks else 0.0)
+        chunks.append(n)
+        return state + n
+
+    def evaluate_state(state):
+        clock.now += 5.0
+        return {"rmse": rmse_at(state), "crash_rate": 0.0}
+
+    result = bench.race_to_threshold(
+        lambda: 0, run_chunk, evaluate_state, num_iterations=num_iterations, steps_per_iteration=64,
+        warmup_iterations=warmup, threshold=0.1, max_s=max_s, chunk_s=chunk_s, clock=clock,
+    )  # fmt: skip
+    return result, chunks
+
+
+def test_race_stops_at_the_threshold_with_evaluation_excluded(bench):
+    # RMSE 1 / iterations: at most 0.1 from iteration 10 on.
+    result, chunks = _race(bench, lambda it: 1.0 / it, chunk_s=0.625)
+    # The first chunk takes 2.125 s with the compile, so the second is 1 again; then doubling, capped at chunk_s /
+    # 0.125 s = 5 iterations: 1, 1, 2, 4, 5 reach 13 >= 10.
+    assert chunks == [1, 1, 2, 4, 5]
+    assert result["reached"] and result["env_steps"] == 13 * 64
+    assert result["time_s"] == 2.0 + 0.125 * 13  # five evaluations of 5 s not counted
+    assert [p["env_steps"] for p in result["curve"]] == [64, 128, 256, 512, 832]
+
+
+def test_race_runs_the_warmup_in_one_chunk_and_gives_up_at_the_limits(bench):
+    # Never reaches the threshold: the budget ends it (the last chunk shortened to fit), not reached.
+    result, chunks = _race(bench, lambda it: 1.0, num_iterations=40, warmup=12, compile_s=0.0)
+    assert chunks == [12, 10, 10, 8] and not result["reached"] and result["env_steps"] == 40 * 64
+    # The time limit: stops at the first evaluation past max_s (2.125 s, 2.25 s, then 2.5 s > 2.3 s).
+    result, chunks = _race(bench, lambda it: 1.0, max_s=2.3)
+    assert chunks == [1, 1, 2] and not result["reached"]
+    assert result["time_s"] == 2.5 and result["env_steps"] == 4 * 64
+
+
+def test_ratio_rows_pair_each_learner_with_its_brax_rival(bench):
+    def run(time_s, reached):
+        return {"reached": reached, "time_s": time_s, "env_steps": 1000, "curve": []}
+
+    ours = {"ppo": run(2.0, True), "sac": run(4.0, True), "ddpg": run(30.0, False), "td3": run(8.0, True)}
+    brax = {"ppo": run(10.0, True), "sac": run(20.0, False)}
+    rows = {row["algo"]: row for row in bench.ttq_rows(ours, brax)}
+    assert {algo: row["brax_algo"] for algo, row in rows.items()} == {
+        "ppo": "ppo", "sac": "sac", "ddpg": "sac", "td3": "sac",
+    }  # fmt: skip
+    assert (rows["ppo"]["brax_over_ours"], rows["ppo"]["relation"]) == (5.0, "=")
+    assert (rows["sac"]["brax_over_ours"], rows["sac"]["relation"]) == (5.0, ">=")  # brax stopped unreached at 20 s
+    assert (rows["ddpg"]["brax_over_ours"], rows["ddpg"]["relation"]) == (None, "")
+    cells = {cells[0]: cells for cells in bench.ttq_table_rows(list(rows.values()))}
+    assert cells["td3"][-1] == ">= 2.50" and cells["ddpg"][1] == "not reached (30.0)" and cells["ppo"][-1] == "5.00"
+    # Without brax's SAC (e.g. --no-brax), its rows have no rival time.
+    (row,) = bench.ttq_rows({"sac": run(4.0, True)}, {})
+    assert row["brax"] is None and row["brax_over_ours"] is None
+
+
+def test_page_sections_are_replaced_or_added_never_the_others(bench):
+    old_format = "# Training speed\n\nMeasured once.\n\n| a |\n|---|\n| 1 |\n"
+    page = bench.merge_section(old_format, "`configs/a.yaml`", "A1")
+    page = bench.merge_section(page, "`configs/b.yaml`", "B1\n\n| x |")
+    page = bench.merge_section(page, "`configs/a.yaml`", "A2")
+    assert page == (
+        f"# Training speed\n\nGenerated by `benchmarks/train.py`; do not edit by hand. {bench.PAGE_NOTE}\n\n"
+        "## `configs/a.yaml`\n\nA2\n\n## `configs/b.yaml`\n\nB1\n\n| x |\n"
+    )
+    assert bench.merge_section(page, "`configs/b.yaml`", "B1\n\n| x |") == page  # same run again: same page
