@@ -43,8 +43,8 @@ CELLS = [
 ]
 
 
-# The nonlinear MPSC runs IPOPT per copy and step on the host (0.04 s per step on the cart-pole, 0.1 s on the 1D
-# quadrotor, 0.5-1 s on the 2D one): its cells run ``(episodes, seconds)``, episodes cut to the part where LQR
+# The nonlinear MPSC runs IPOPT per copy and step on the host (IPOPT's own time: 26 ms per step on the cart-pole,
+# 13 ms on the 1D quadrotor, 96 ms on the 2D one): its cells run ``(episodes, seconds)``, episodes cut to the part where LQR
 # crosses the constraint (``Case.make``: the same initial states, reference and constraint, the episode ended early;
 # 2 episodes on the cart-pole |x| as LQR's first episode of one stays inside). Measured (seed 0; LQR's violating steps
 # per episode there, of the full 5 s episodes' in brackets; filtered share, bound 10 %; RMSE ratio, bound 1.5x):

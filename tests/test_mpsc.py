@@ -14,6 +14,7 @@ from scg_algorithms.safety_filters import mpsc_tightening as tight
 from scg_algorithms.safety_filters.base import SafetyFilter
 from scg_algorithms.safety_filters.mpsc_linear import build_problem, make_linear_mpsc, make_linear_mpsc_casadi
 from scg_algorithms.safety_filters.mpsc_nonlinear import make_nonlinear_mpsc
+from scg_algorithms.safety_filters.mpsc_structured import tail_rows
 
 # The regulariser at 1e-3, where these tests' numbers were measured (the default, 1e-2, is held to the contract by
 # tests/test_filter_contract.py; at 1e-2 one of the structured solver's 16 certified inputs here is 9e-4 N from
@@ -196,10 +197,29 @@ def test_linear_mpsc_keeps_the_cart_inside(env):
     assert filtered["correction"].max() > 1.0  # it did intervene
 
 
-def test_nonlinear_mpsc_prevents_the_violation(env):
+@pytest.fixture(scope="module")
+def nonlinear_filter(env):
+    return make_nonlinear_mpsc(env, env.default_params, {**OPTIONS, "constraint_margin": 0.005})
+
+
+def test_nonlinear_mpsc_imposes_the_tail_rows_the_others_do_not_imply(nonlinear_filter):
+    """The NLP holds a few of the terminal tail's rows: over states around the goal, they hold exactly where all the
+    tail's rows hold (the same terminal set)."""
+    f = nonlinear_filter
+    F_all, high_all = tail_rows(f._tail, f.K, f.x_goal, f.u_eq, f.rows, f.margins, f.horizon, "test", False)
+    F, high = f.tail_imposed
+    assert 0 < F.shape[0] <= F_all.shape[0] // 4  # 82 of 800 on this cart-pole
+    x_H = f.x_goal + np.random.default_rng(0).uniform(-1.0, 1.0, (20_000, 4)) * [0.6, 1.5, 0.3, 1.5]
+    inside_all = np.all(x_H @ F_all.T <= high_all + 1e-9, axis=1)
+    inside_kept = np.all(x_H @ F.T <= high + 1e-9, axis=1)
+    assert 1_000 < inside_all.sum() < 19_000  # both sides of the terminal set are sampled
+    np.testing.assert_array_equal(inside_kept, inside_all)
+
+
+def test_nonlinear_mpsc_prevents_the_violation(env, nonlinear_filter):
     params = env.default_params
     controller = E.setpoint_lqr(env, params)
-    f = make_nonlinear_mpsc(env, params, {**OPTIONS, "constraint_margin": 0.005})
+    f = nonlinear_filter
     assert isinstance(f, SafetyFilter) and not f.is_jax
     step = jax.jit(env.step)
     obs, state = env.reset(jax.random.PRNGKey(1), params)

@@ -64,16 +64,30 @@ def plan_weight(problem) -> tuple[float, np.ndarray]:
 
 def _tail_rows(problem) -> tuple[np.ndarray, np.ndarray]:
     """``(F (n, nx), high (n,))``: every row of the plan's tail as ``F x_H <= high`` (unit-norm coefficients)."""
-    rows, H, nx = problem.rows, problem.horizon, problem.nx
-    A, B, c = problem.affine.Ad[0], problem.affine.Bd[0], problem.affine.c[0]
-    K, x_bar, u_bar = problem.K, problem.x_bar, problem.u_bar
+    affine = problem.affine
+    return tail_rows(
+        (affine.Ad[0], affine.Bd[0], affine.c[0]), problem.K, problem.x_bar, problem.u_bar, problem.rows,
+        problem.margins, problem.horizon, "safety_filters.linear_mpsc",
+    )  # fmt: skip
+
+
+def tail_rows(
+    model, K, x_bar, u_bar, rows, margins, horizon: int, path: str, normalize: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(F (n, nx), high (n,))``: the rows ``rows`` (``Ax x + Au u <= b - margins[j]``) at the tail's stages
+    ``horizon..len(margins)-1`` along the ancillary LQR ``u = u_bar - K (x - x_bar)`` on the affine ``model``
+    ``(A, B, c)`` (``x+ = A x + B u + c``) from ``x_H``, as ``F x_H <= high`` (unit-norm coefficients; rows that do
+    not depend on ``x_H`` and hold from every state left out; ``normalize=False``: in the rows' own units). A row
+    that no state holds is refused (``path``)."""
+    A, B, c = model
+    nx = A.shape[0]
     M, m = np.eye(nx), np.zeros(nx)  # x_t = M x_H + m
     F, high = [], []
-    for j in range(H, problem.stages):
+    for j in range(horizon, margins.shape[0]):
         Mu, mu = -K @ M, u_bar + K @ (x_bar - m)  # u_t = Mu x_H + mu
         M, m = A @ M + B @ Mu, A @ m + B @ mu + c
         F.append(rows.Ax @ M + rows.Au @ Mu)
-        high.append(rows.b - problem.margins[j] - rows.Ax @ m - rows.Au @ mu)
+        high.append(rows.b - margins[j] - rows.Ax @ m - rows.Au @ mu)
     if not F:
         return np.zeros((0, nx)), np.zeros(0)
     F, high = np.concatenate(F), np.concatenate(high)
@@ -81,32 +95,46 @@ def _tail_rows(problem) -> tuple[np.ndarray, np.ndarray]:
     keep = norms > 1e-12
     if np.any(~keep & (high < 0)):
         raise ValueError(
-            f"safety_filters.linear_mpsc.terminal_horizon: the ancillary LQR's tail breaks a row from every state "
+            f"{path}.terminal_horizon: the ancillary LQR's tail breaks a row from every state "
             f"(bound {high[~keep & (high < 0)].min():.3g} below zero); shorten terminal_horizon or lower the tightening"
         )
-    return F[keep] / norms[keep, None], high[keep] / norms[keep]
+    scale = norms[keep] if normalize else np.ones(int(keep.sum()))
+    return F[keep] / scale[:, None], high[keep] / scale
 
 
 def terminal_rows(problem, box: tuple[np.ndarray, np.ndarray], count: int) -> tuple[np.ndarray, np.ndarray]:
-    """At most ``count`` tail rows ``(F (k, nx), high (k,))`` on ``x_H``: the nearest to the goal first, each kept
-    only if the ones kept before and the state ``box`` ``(low, high)`` (nx,) the last stage imposes anyway
-    (infinite where none) do not already imply it (a linear program, scipy's HiGHS). The set they bound contains
-    the tail's set; the solve's plan is checked against every tail row afterwards."""
+    """At most ``count`` tail rows ``(F (k, nx), high (k,))`` on ``x_H`` (``nonredundant_rows`` of the tail's)."""
+    F, high = _tail_rows(problem)
+    kept = nonredundant_rows(F, high, problem.x_bar, box, count)
+    return F[kept], high[kept]
+
+
+def nonredundant_rows(F, high, x_bar, box, count: float) -> np.ndarray:
+    """Indices of at most ``count`` of the rows ``F x <= high`` ((n, nx) with unit-norm rows, (n,)): the nearest to
+    ``x_bar`` first, each kept only
+    if the ones kept before and the state ``box`` ``(low, high)`` (nx,) (infinite where none) do not already imply
+    it (a linear program, scipy's HiGHS). The set they bound contains the rows' set, and equals it inside the box
+    when no cap cut the list."""
     from scipy.optimize import linprog
 
-    F, high = _tail_rows(problem)
     if F.shape[0] == 0 or count == 0:
-        return F[:0], high[:0]
+        return np.zeros(0, int)
     # Parallel rows: only the tightest can bind.
     order = np.lexsort((high, *np.round(F, 9).T[::-1]))
     F, high = F[order], high[order]
     first = np.r_[True, np.any(np.abs(np.diff(F, axis=0)) > 1e-9, axis=1)]
-    F, high = F[first], high[first]
+    order, F, high = order[first], F[first], high[first]
     bounds = [(lo if np.isfinite(lo) else None, hi if np.isfinite(hi) else None) for lo, hi in zip(*box, strict=True)]
-    kept = []
-    for i in np.argsort(high - F @ problem.x_bar):
+    kept, hull, hull_of = [], None, -4
+    for i in np.argsort(high - F @ x_bar):
         if len(kept) == count:
             break
+        # A box around the set of the rows kept so far (2 nx LPs) holds the set of all the kept rows too: it is redone
+        # only as the kept rows grow by half, a looser box costs an LP for some rows it leaves undecided.
+        if kept and len(kept) >= hull_of + max(4, hull_of // 2):
+            hull, hull_of = _bounding_box(F[kept], high[kept], bounds), len(kept)
+        if hull is not None and _box_max(F[i], hull) <= high[i] + REDUNDANCY_TOL:
+            continue  # implied already over a box that holds the kept rows' set: no LP needed
         if kept:
             result = linprog(-F[i], A_ub=F[kept], b_ub=high[kept], bounds=bounds, method="highs")
         else:
@@ -115,7 +143,32 @@ def terminal_rows(problem, box: tuple[np.ndarray, np.ndarray], count: int) -> tu
             break
         if not (result.status == 0 and -result.fun <= high[i] + REDUNDANCY_TOL):
             kept.append(int(i))
-    return F[kept], high[kept]
+    return order[kept]
+
+
+def _bounding_box(F, high, bounds) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(low, high)`` (nx,) of the set ``F x <= high`` within ``bounds`` (infinite where unbounded); ``None`` when
+    the set is empty or an LP fails."""
+    from scipy.optimize import linprog
+
+    nx = F.shape[1]
+    low, up = np.full(nx, -np.inf), np.full(nx, np.inf)
+    for d in range(nx):
+        for sign, out in ((1.0, up), (-1.0, low)):  # linprog minimises: -x_d for the largest x_d, x_d for the least
+            result = linprog(-sign * np.eye(nx)[d], A_ub=F, b_ub=high, bounds=bounds, method="highs")
+            if result.status == 0:
+                out[d] = -sign * result.fun
+            elif result.status != 3:  # 3: unbounded in this direction (the box stays infinite there)
+                return None
+    return low, up
+
+
+def _box_max(f, box) -> float:
+    """The largest value of ``f @ x`` over the box ``(low, high)`` (infinite if the box is open along ``f``)."""
+    low, up = box
+    with np.errstate(invalid="ignore"):
+        terms = np.where(f > 0, f * up, np.where(f < 0, f * low, 0.0))
+    return float(terms.sum())
 
 
 def _split_rows(problem):
@@ -222,4 +275,4 @@ def build(problem) -> StructuredMPSC:
     return StructuredMPSC(layout, settings, prepared, template.c, q, r, bounds, F.shape[0])
 
 
-__all__ = ["StructuredMPSC", "build", "plan_weight", "terminal_rows"]
+__all__ = ["StructuredMPSC", "build", "nonredundant_rows", "plan_weight", "tail_rows", "terminal_rows"]
