@@ -29,7 +29,7 @@ def _cell(case: int, name: str, slow: bool = True, optimized: bool = False):
 # (share of LQR's violating steps, bound 10 %; RMSE ratio, bound 1.5x), JAX filters on these 16 episodes:
 #   cbf:         cart |x| 7.6 %, 1.08x; cart |theta| 0 %, 0.89x; 1D 0 %, 1.06x; 2D z 0 %, 1.49x; 2D |x| 0 %, 0.92x;
 #                3D z 0 %, 1.49x
-#   linear_mpsc: cart |x| 9.6 % (15 steps in all, 15.7 allowed), 1.44x; cart |theta| 3.1 %, 0.83x; 1D 2.2 %, 1.05x;
+#   linear_mpsc: cart |x| 9.6 % (15 steps in all, 15.7 allowed), 1.44x; cart |theta| 2.9 %, 0.82x; 1D 2.2 %, 1.05x;
 #                2D z 3.4 %, 1.18x; 2D |x| 0 %, 0.97x; 3D z 2.3 %, 1.489x
 #   nonlinear_mpsc (the benchmark's 16 episodes on cart |x|, 2 elsewhere): cart |x| 8.9 %, 1.28x; cart |theta| 0 %,
 #                0.83x; 1D 0 %, 1.16x; 2D z 0 %, 1.14x; 2D |x| 0 %, 1.42x; 3D z refused (below). This test's own
@@ -44,10 +44,11 @@ CELLS = [
 
 
 # The nonlinear MPSC runs IPOPT per copy and step on the host (IPOPT's own time: 26 ms per step on the cart-pole,
-# 13 ms on the 1D quadrotor, 96 ms on the 2D one): its cells run ``(episodes, seconds)``, episodes cut to the part where LQR
-# crosses the constraint (``Case.make``: the same initial states, reference and constraint, the episode ended early;
-# 2 episodes on the cart-pole |x| as LQR's first episode of one stays inside). Measured (seed 0; LQR's violating steps
-# per episode there, of the full 5 s episodes' in brackets; filtered share, bound 10 %; RMSE ratio, bound 1.5x):
+# 13 ms on the 1D quadrotor, 96 ms on the 2D one): its cells run ``(episodes, seconds)``, episodes cut to the part
+# where LQR crosses the constraint (``Case.make``: the same initial states, reference and constraint, the episode
+# ended early; 2 episodes on the cart-pole |x| as LQR's first episode of one stays inside). Measured (seed 0; LQR's
+# violating steps per episode there, of the full 5 s episodes' in brackets; filtered share, bound 10 %; RMSE ratio,
+# bound 1.5x):
 #   cart |x| 3 s: 14.0 (14.0), 0 %, 1.45x (2 s: 1.49x; 5 s: 1.446x: the 2-episode ratio is thin at any length)
 #   cart |theta| 1 s: 30.0 (176.5), 0 %, 0.87x;  1D 2 s: 26.0 (26.0), 0 %, 1.24x;  2D z 1 s: 27.0 (76.0), 0 %, 1.03x
 #   2D |x| 1 s: 3.0 (101.0), 0 %, 1.00x (LQR overshoots the box once, at the start; its later crossings, at

@@ -139,11 +139,22 @@ def nonredundant_rows(F, high, x_bar, box, count: float) -> np.ndarray:
             result = linprog(-F[i], A_ub=F[kept], b_ub=high[kept], bounds=bounds, method="highs")
         else:
             result = linprog(-F[i], bounds=bounds, method="highs")
-        if result.status == 2:  # the kept rows and the box admit no state: every plan fails the full check anyway
-            break
+        # HiGHS reports an unbounded program as "infeasible or unbounded" (status 2) when its presolve stops early:
+        # only a program without a feasible point means that the kept rows and the box admit no state.
+        if result.status == 2 and _admits_no_state(F[kept], high[kept], bounds):
+            break  # every plan fails the full check anyway
         if not (result.status == 0 and -result.fun <= high[i] + REDUNDANCY_TOL):
             kept.append(int(i))
     return order[kept]
+
+
+def _admits_no_state(F, high, bounds) -> bool:
+    """Whether no ``x`` within ``bounds`` satisfies ``F x <= high`` (a feasibility program)."""
+    from scipy.optimize import linprog
+
+    result = linprog(np.zeros(F.shape[1]), A_ub=F if F.shape[0] else None, b_ub=high if F.shape[0] else None,
+                     bounds=bounds, method="highs")  # fmt: skip
+    return result.status == 2
 
 
 def _bounding_box(F, high, bounds) -> tuple[np.ndarray, np.ndarray] | None:
