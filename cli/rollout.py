@@ -21,6 +21,7 @@ from scg_cli.common import (
     positive_int,
 )
 from scg_cli.scale import add_scale_arguments, check_batch, is_main_process, make_mesh, start_distributed
+from scg_jax.caching import jitted_method
 from scg_jax.files import write_atomic, write_json
 
 POLICIES = ("zero", "random", "linear")
@@ -80,7 +81,7 @@ def _make_policy(env, params, args) -> tuple[Callable, np.ndarray | None]:
         else:
             from scg_algorithms.lqr import lqr_gain_about
 
-            x0, u0 = jax.jit(env.reference_at)(0, params)
+            x0, u0 = jitted_method(env, "reference_at")(0, params)
             gain = lqr_gain_about(env, params, np.asarray(x0), np.asarray(u0))
         k = jnp.asarray(gain, dtype=dtype)
 
@@ -188,9 +189,8 @@ def run_rollout(args: argparse.Namespace, console) -> int:
 
 
 def _rollout_data(env, params, traj) -> dict[str, np.ndarray]:
-    import jax
 
-    x_ref, u_ref = jax.jit(env.reference)(params)
+    x_ref, u_ref = jitted_method(env, "reference")(params)
     info = ("u", "constraint_values", "mse", "out_of_bounds", "nonfinite")
     return {
         **env_arrays(env, params),

@@ -22,6 +22,8 @@ from collections import OrderedDict
 from collections.abc import Callable, Hashable, Sequence
 from typing import Any
 
+import jax
+
 
 class CompileCache:
     """A bounded LRU cache of values built per ``(owners, key)``; see the module docstring for the policy.
@@ -95,4 +97,13 @@ class CompileCache:
             self._dead.clear()
 
 
-__all__ = ["CompileCache"]
+_METHODS = CompileCache(maxsize=32)
+
+
+def jitted_method(owner, name: str) -> Callable:
+    """``jax.jit(getattr(owner, name))``, made once per ``owner`` (an env's ``reference``, say): a new bound method
+    each call is a new function to ``jax.jit``, which would trace and compile it again."""
+    return _METHODS.get(name, lambda: jax.jit(getattr(owner, name)), owners=(owner,))
+
+
+__all__ = ["CompileCache", "jitted_method"]

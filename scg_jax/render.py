@@ -45,7 +45,7 @@ from matplotlib.colors import to_rgba
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from scg_jax.caching import CompileCache
+from scg_jax.caching import CompileCache, jitted_method
 from scg_jax.video import MAX_GIF_FPS, SUFFIXES, write_gif, write_mp4
 
 __all__ = ["DRAWN_ARM", "SUFFIXES", "VIEWS", "animate", "animate_rollout_file", "animation_frames", "render_frame"]
@@ -763,9 +763,7 @@ class _Animation:
         if not (np.isfinite(self.dt) and self.dt > 0):
             raise ValueError(f"dt: expected a positive number, got {dt!r}")
         if x_ref is None and env.task == "tracking":
-            import jax
-
-            x_ref = np.asarray(jax.jit(env.reference)(params)[0])
+            x_ref = np.asarray(jitted_method(env, "reference")(params)[0])
         if stride is None:
             stride = max(1, math.ceil(1.0 / (self.dt * MAX_GIF_FPS) - 1e-9))
         if isinstance(stride, bool) or not float(stride).is_integer() or stride < 1:

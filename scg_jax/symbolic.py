@@ -14,6 +14,7 @@ import numpy as np
 
 from scg_jax import constraints as constraints_lib
 from scg_jax.backends import casadi_backend
+from scg_jax.caching import jitted_method
 from scg_jax.integrators import make_discrete_dynamics
 
 DISCRETIZATIONS = ("env", "rk4")
@@ -178,7 +179,7 @@ def build_symbolic_model(env, params, discretization: str = "env") -> SymbolicMo
     g = cs.Function("g", [x, u], [cs.vertcat(*rows) if rows else cs.SX(0, 1)], ["x", "u"], ["g"])
     tolerances = tuple(float(np.asarray(c.tolerance)) for c in params.constraints)
 
-    x_ref, u_ref = jax.jit(env.reference)(params)
+    x_ref, u_ref = jitted_method(env, "reference")(params)
     return SymbolicModel(
         nx=nx,
         nu=nu,

@@ -239,6 +239,18 @@ def test_a_shifted_warm_start_reaches_the_cold_plan_and_the_loop_never_retraces(
     assert len(traces) == 2  # once without a warm start, once with one; never again
 
 
+def test_preparing_a_second_family_of_the_same_layout_compiles_nothing(boxed_lq):
+    """``prepare``'s float64 maps are one compiled program per layout: another template of the same sizes (a new
+    controller or filter) reuses it and gives its own numbers."""
+    layout, qp, _, _ = boxed_lq
+    S.prepare(layout, qp)
+    compiled = S._linear_maps._cache_size()
+    other = qp._replace(Q=2.0 * np.asarray(qp.Q), R=2.0 * np.asarray(qp.R))  # the Hessian H doubles
+    first, second = S.prepare(layout, qp), S.prepare(layout, other)
+    assert S._linear_maps._cache_size() == compiled
+    assert float(second.scale) == pytest.approx(2.0 * float(first.scale), rel=1e-12)  # max diag(H)
+
+
 def test_same_inputs_same_result_and_batched_equals_one_at_a_time(boxed_lq):
     layout, qp, solve, _ = boxed_lq
     xs = jnp.asarray(np.random.default_rng(1).uniform(-2.0, 2.0, (6, 2)), jnp.float32)

@@ -70,6 +70,7 @@ Float32 by default (the dtype of ``x_init``), float64 when x64 is on; ``prepare`
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any, NamedTuple
 
 import jax
@@ -299,26 +300,29 @@ def _maps(layout: Layout, A, B, K):
     for k in range(N):
         select[k, :, k * nu : (k + 1) * nu] = np.eye(nu)
 
-    def body(E, inputs):
-        A_k, B_k, K_k, S_k = inputs
-        Eu = S_k - K_k @ E
-        E = A_k @ E + B_k @ Eu
-        return E, (E, Eu)
-
     E0 = jnp.zeros((layout.nx, n), A.dtype)
-    return lax.scan(body, E0, (A, B, K, jnp.asarray(select, A.dtype)))[1]
+    return lax.scan(_maps_step, E0, (A, B, K, jnp.asarray(select, A.dtype)))[1]
+
+
+# The scans' bodies live at module level: run eagerly (on the host, at set-up), a scan is compiled per body function,
+# so a closure made per call would be traced and compiled again by every ``prepare``.
+def _maps_step(E, inputs):
+    A_k, B_k, K_k, S_k = inputs
+    Eu = S_k - K_k @ E
+    E = A_k @ E + B_k @ Eu
+    return E, (E, Eu)
+
+
+def _offsets_step(x, inputs):
+    A_k, B_k, K_k, c_k = inputs
+    u = -K_k @ x
+    x = A_k @ x + B_k @ u + c_k
+    return x, (x, u)
 
 
 def _offsets(A, B, K, c, x_init):
     """``(ex (N, nx), eu (N, nu))``: the states and inputs of ``v = 0`` (the pre-stabilised trajectory)."""
-
-    def body(x, inputs):
-        A_k, B_k, K_k, c_k = inputs
-        u = -K_k @ x
-        x = A_k @ x + B_k @ u + c_k
-        return x, (x, u)
-
-    return lax.scan(body, x_init, (A, B, K, c))[1]
+    return lax.scan(_offsets_step, x_init, (A, B, K, c))[1]
 
 
 def _stage_values(layout: Layout, x, u, C, D):
@@ -821,6 +825,32 @@ def _check_template(template: HorizonQP) -> dict:
     return mats
 
 
+@functools.partial(jax.jit, static_argnums=0)
+def _linear_maps(layout: Layout, m: dict):
+    """``(H, G, Ex, g_map, off_map, ex_map)`` of ``prepare`` from the template's matrices ``m`` (float64). One
+    compiled program per layout and shapes: ``prepare`` runs once per controller or filter built, and run eagerly
+    these scans and Jacobians were traced and compiled again each time."""
+    N, nx, nu = layout.horizon, layout.nx, layout.nu
+    n_theta = nx + N * nx
+    Ex, Eu = _maps(layout, m["A"], m["B"], m["K"])
+    H = _hessian(m["Q"], m["R"], Ex, Eu)
+    G = _rows(layout, Ex, Eu, m["C"], m["D"])
+
+    def offsets(theta):
+        return _offsets(m["A"], m["B"], m["K"], theta[nx:].reshape(N, nx), theta[:nx])
+
+    def gradient(vectors):
+        ex, eu = offsets(vectors[:n_theta])
+        q = vectors[n_theta : n_theta + N * nx].reshape(N, nx)
+        r = vectors[n_theta + N * nx :].reshape(N, nu)
+        return _gradient(m["Q"], m["R"], q, r, Ex, Eu, ex, eu)
+
+    g_map = jax.jacfwd(gradient)(jnp.zeros(n_theta + N * (nx + nu)))
+    off_map = jax.jacfwd(lambda theta: _row_offsets(layout, *offsets(theta), m["C"], m["D"]))(jnp.zeros(n_theta))
+    ex_map = jax.jacfwd(lambda theta: offsets(theta)[0].reshape(-1))(jnp.zeros(n_theta))
+    return H, G, Ex, g_map, off_map, ex_map
+
+
 def prepare(layout: Layout, template: HorizonQP, settings: Settings = Settings(), dtype=None) -> Prepared:
     """Precompute, in float64, everything of a QP family whose matrices (``A``, ``B``, ``K``, ``Q``, ``R``, ``C``,
     ``D``) are the template's for every copy; ``solve_prepared`` then takes the vectors (``x_init``, ``c``, ``q``,
@@ -832,28 +862,11 @@ def prepare(layout: Layout, template: HorizonQP, settings: Settings = Settings()
     """
     dtype = jnp.zeros(()).dtype if dtype is None else dtype
     mats = _check_template(template)
-    N, nx, nu = layout.horizon, layout.nx, layout.nu
-    n_theta = nx + N * nx
     bounds = tuple(np.asarray(getattr(template, name), dtype=np.float64) for name in BOUND_FIELDS)
     with jax.enable_x64(True):
         m = {name: jnp.asarray(value) for name, value in mats.items()}
-        Ex, Eu = _maps(layout, m["A"], m["B"], m["K"])
-        H = _hessian(m["Q"], m["R"], Ex, Eu)
-        G = _rows(layout, Ex, Eu, m["C"], m["D"])
+        H, G, Ex, g_map, off_map, ex_map = _linear_maps(layout, m)
         norms = _row_scales(layout, bounds, G, jnp.maximum(jnp.max(jnp.diagonal(H)), np.finfo(np.float64).tiny))
-
-        def offsets(theta):
-            return _offsets(m["A"], m["B"], m["K"], theta[nx:].reshape(N, nx), theta[:nx])
-
-        def gradient(vectors):
-            ex, eu = offsets(vectors[:n_theta])
-            q = vectors[n_theta : n_theta + N * nx].reshape(N, nx)
-            r = vectors[n_theta + N * nx :].reshape(N, nu)
-            return _gradient(m["Q"], m["R"], q, r, Ex, Eu, ex, eu)
-
-        g_map = jax.jacfwd(gradient)(jnp.zeros(n_theta + N * (nx + nu)))
-        off_map = jax.jacfwd(lambda theta: _row_offsets(layout, *offsets(theta), m["C"], m["D"]))(jnp.zeros(n_theta))
-        ex_map = jax.jacfwd(lambda theta: offsets(theta)[0].reshape(-1))(jnp.zeros(n_theta))
         H, G, Ex, norms, g_map, off_map, ex_map = (np.asarray(a) for a in (H, G, Ex, norms, g_map, off_map, ex_map))
 
     scale = max(float(np.max(np.diagonal(H))), np.finfo(np.float64).tiny)
