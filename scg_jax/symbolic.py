@@ -14,7 +14,7 @@ import numpy as np
 
 from scg_jax import constraints as constraints_lib
 from scg_jax.backends import casadi_backend
-from scg_jax.caching import jitted_method
+from scg_jax.caching import CompileCache, jitted_method
 from scg_jax.integrators import make_discrete_dynamics
 
 DISCRETIZATIONS = ("env", "rk4")
@@ -127,6 +127,33 @@ def _to_float(name: str, value) -> float:
             f"symbolic_model: params.physics.{name} must be a scalar (unbatched params), got shape {array.shape}"
         )
     return float(array)
+
+
+_PLANT_STEPS = CompileCache(maxsize=16)
+
+
+def plant_step(env) -> cs.Function:
+    """``fd(x (nx,), u (nu,), p (np,)) -> x_next (nx,)``: one control period with the env's integrator and
+    substeps, the plant's physics as the parameter vector ``p`` (``physics_vector``). Built once per env, so a
+    sweep over plants evaluates one CasADi function instead of building a ``SymbolicModel`` per plant; it equals
+    ``env.symbolic_model(params).fd`` at ``p = physics_vector(params)``."""
+    return _PLANT_STEPS.get("fd", lambda: _build_plant_step(env), owners=(env,))
+
+
+def physics_vector(params) -> np.ndarray:
+    """The plant's physics ``params.physics`` as ``plant_step``'s parameter vector (fields in declaration order)."""
+    physics = params.physics
+    return np.array([_to_float(f.name, getattr(physics, f.name)) for f in dataclasses.fields(physics)])
+
+
+def _build_plant_step(env) -> cs.Function:
+    system = env.system
+    names = [f.name for f in dataclasses.fields(system.params_cls)]
+    p = cs.SX.sym("p", len(names))
+    physics = system.params_cls(**{name: p[i] for i, name in enumerate(names)})
+    x, u = cs.SX.sym("x", system.nx), cs.SX.sym("u", system.nu)
+    x_next = env.discrete_dynamics()(x, u, physics, casadi_backend)
+    return cs.Function("fd", [x, u, p], [x_next], ["x", "u", "p"], ["x_next"])
 
 
 def build_symbolic_model(env, params, discretization: str = "env") -> SymbolicModel:

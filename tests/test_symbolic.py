@@ -127,3 +127,26 @@ def test_evaluate_fc_names_the_size_it_expects():
         model.evaluate_fd(np.zeros((6, 5)), np.zeros((5, 2)))
     with pytest.raises(ValueError, match=r"evaluate_fc: the leading axes of x \(5,\) and u \(4,\) do not broadcast"):
         model.evaluate_fc(np.zeros((5, 6)), np.zeros((4, 2)))
+
+
+@pytest.mark.parametrize("name", SYSTEM_NAMES)
+def test_plant_step_with_a_plants_physics_equals_that_plants_model_fd(name):
+    """``plant_step`` (physics as a parameter, built once per env) gives each plant's own ``fd`` bit for bit."""
+    from scg_jax.symbolic import physics_vector, plant_step
+
+    env = scg_jax.make(name)
+    rng = np.random.default_rng(0)
+    fd = plant_step(env)
+    assert plant_step(env) is fd  # one function per env
+    base = env.default_params
+    for scale in (0.8, 1.25):
+        fields = {f: getattr(base.physics, f) * scale for f in ("mass", "pole_mass") if hasattr(base.physics, f)}
+        assert fields, "a physics field to vary"
+        params = base.replace(physics=base.physics.replace(**fields))
+        x = rng.uniform(-0.5, 0.5, (5, env.nx))
+        u = np.asarray(env.system.equilibrium_input(params.physics)) + rng.uniform(-0.2, 0.2, (5, env.nu))
+        p = np.repeat(physics_vector(params)[:, None], 5, axis=1)
+        ours = np.asarray(fd.map(5)(x.T, u.T, p)).T
+        reference = np.asarray(env.symbolic_model(params).fd.map(5)(x.T, u.T)).T
+        np.testing.assert_array_equal(ours, reference)
+        assert np.abs(ours - np.asarray(env.symbolic_model(base).fd.map(5)(x.T, u.T)).T).max() > 1e-6

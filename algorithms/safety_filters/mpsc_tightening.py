@@ -33,9 +33,10 @@ def sample_transitions(env, plant_params, count: int, seed: int, half_width=None
     """``count`` one-step transitions of the plant ``plant_params`` from random states and inputs.
 
     The step is the plant's CasADi mirror with the env's own integrator and substeps
-    (``env.symbolic_model(plant_params).fd``, which the project's tests hold equal to ``env.step`` without
-    disturbances), mapped over the samples in one call: compiling the vmapped JAX step with its physics substeps
-    costs tens of seconds on a small CPU, the mapped CasADi call milliseconds.
+    (``scg_jax.symbolic.plant_step``, ``env.symbolic_model(plant_params).fd`` with the physics as a parameter, which
+    the project's tests hold equal to ``env.step`` without disturbances), mapped over the samples in one call:
+    compiling the vmapped JAX step with its physics substeps costs tens of seconds on a small CPU, the mapped CasADi
+    call milliseconds.
 
     Args:
         env: the environment. plant_params: unbatched ``EnvParams`` of the plant (usually ``env.default_params``).
@@ -70,10 +71,13 @@ def sample_transitions(env, plant_params, count: int, seed: int, half_width=None
 
         keys = jax.random.split(jax.random.key(seed), num_plants)
         plants = [plant_params.replace(physics=env.reset(key, plant_params)[1].physics) for key in keys]
+    from scg_jax.symbolic import physics_vector, plant_step
+
+    fd = plant_step(env)  # one CasADi function for every plant, its physics a parameter
     x_next = np.empty_like(x)
     for share, plant in zip(np.array_split(np.arange(count), len(plants)), plants, strict=True):
-        fd = env.symbolic_model(plant).fd
-        x_next[share] = np.asarray(fd.map(share.size)(x[share].T, u[share].T), dtype=np.float64).T
+        p = np.repeat(physics_vector(plant)[:, None], share.size, axis=1)
+        x_next[share] = np.asarray(fd.map(share.size)(x[share].T, u[share].T, p), dtype=np.float64).T
     return x, u, x_next
 
 
