@@ -189,7 +189,6 @@ def run_rollout(args: argparse.Namespace, console) -> int:
 
 
 def _rollout_data(env, params, traj) -> dict[str, np.ndarray]:
-
     x_ref, u_ref = jitted_method(env, "reference")(params)
     info = ("u", "constraint_values", "mse", "out_of_bounds", "nonfinite")
     return {

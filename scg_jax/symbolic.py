@@ -133,7 +133,7 @@ _PLANT_STEPS = CompileCache(maxsize=16)
 
 
 def plant_step(env) -> cs.Function:
-    """``fd(x (nx,), u (nu,), p (np,)) -> x_next (nx,)``: one control period with the env's integrator and
+    """``fd(x (nx,), u (nu,), p (np,)) -> x_next (nx, 1)``: one control period with the env's integrator and
     substeps, the plant's physics as the parameter vector ``p`` (``physics_vector``). Built once per env, so a
     sweep over plants evaluates one CasADi function instead of building a ``SymbolicModel`` per plant; it equals
     ``env.symbolic_model(params).fd`` at ``p = physics_vector(params)``."""

@@ -263,7 +263,8 @@ class NonlinearMPSC:
             kept = nonredundant_rows(F / norms[:, None], high / norms, self.x_goal, free, np.inf)
             F, high = F[kept], high[kept]  # in the rows' units, as before
             self.tail_imposed = (F, high)
-            opti.subject_to(cs.DM(F) @ X[:, H] - cs.DM(high) <= tail_slack)
+            if F.shape[0]:
+                opti.subject_to(cs.DM(F) @ X[:, H] - cs.DM(high) <= tail_slack)
             if soft:
                 opti.subject_to(tail_slack >= 0)
                 cost += opts.violation_penalty * tail_slack

@@ -111,10 +111,9 @@ def terminal_rows(problem, box: tuple[np.ndarray, np.ndarray], count: int) -> tu
 
 def nonredundant_rows(F, high, x_bar, box, count: float) -> np.ndarray:
     """Indices of at most ``count`` of the rows ``F x <= high`` ((n, nx) with unit-norm rows, (n,)): the nearest to
-    ``x_bar`` first, each kept only
-    if the ones kept before and the state ``box`` ``(low, high)`` (nx,) (infinite where none) do not already imply
-    it (a linear program, scipy's HiGHS). The set they bound contains the rows' set, and equals it inside the box
-    when no cap cut the list."""
+    ``x_bar`` first, each kept only if the ones kept before and the state ``box`` ``(low, high)`` (nx,) (infinite
+    where none) do not already imply it (a linear program, scipy's HiGHS). The set they bound contains the rows'
+    set, and equals it inside the box when no cap cut the list."""
     from scipy.optimize import linprog
 
     if F.shape[0] == 0 or count == 0:
