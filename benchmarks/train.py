@@ -249,8 +249,7 @@ def race_to_threshold(
             chunk runs them all and is evaluated once, at its end. threshold: RMSE to reach with no crash. max_s:
             give up after this much training time (s). chunk_s: training time between evaluations (s); a chunk at
             most doubles the previous one, so the first evaluations come early. report: called with every curve
-            point. clock:
-            seconds (``time.perf_counter``; a test passes a fake).
+            point. clock: seconds (``time.perf_counter``; a test passes a fake).
 
     Returns:
         ``reached``, ``time_s`` (training wall time, compile included, evaluation excluded), ``env_steps`` (at the

@@ -13,7 +13,8 @@ when ``model_bias``)::
 
 - Terminal tail: the rows along the ancillary LQR on the linearised model are affine in ``X_H``; the NLP holds
   those the others do not imply (``mpsc_structured.nonredundant_rows``, a linear program per row at build; the set
-  is the same), and a plan is checked against every tail row after the solve (``tail_imposed``: ``(F, high)``).
+  is the same), and a plan is checked against every tail row after the solve (``tail_all``, ``tail_imposed``:
+  ``(F, high)``).
 - Rows: the actuator limits and the env's linear constraints (``scg_algorithms.mpc.linear``'s rows; quadratic
   constraints are not imposed).
 - Tightening per stage (``tightening="reachable"``): the linearised error tube under the ancillary LQR ``K`` about
@@ -253,16 +254,15 @@ class NonlinearMPSC:
         # The terminal set: from X_H the ancillary LQR on the linearised model keeps the rows over the tail. The NLP
         # holds only the tail rows that the others do not imply (mpsc_structured.nonredundant_rows, exact: the same
         # set; the 2D quadrotor's 1,800 tail rows made IPOPT's iterations about 4x dearer), and ``solve`` checks
-        # every tail row after the solve.
-        tail_rows = self._tail_rows(X[:, H], cs)
-        self.tail_imposed = (np.zeros((0, nx)), np.zeros(0))  # (F (k, nx), high (k,)): F X_H - high <= tail slack
+        # every tail row after the solve. Both in the rows' own units (m, rad, N).
+        self.tail_all = tail_rows_of(self._tail, self.K, self.x_goal, self.u_eq, rows, self.margins, H, PATH, False)
+        self.tail_imposed = self.tail_all  # (F (k, nx), high (k,)): F X_H - high <= tail slack
         if self.stages > H:
-            F, high = tail_rows_of(self._tail, self.K, self.x_goal, self.u_eq, rows, self.margins, H, PATH, False)
+            F, high = self.tail_all
             norms = np.linalg.norm(F, axis=1)
             free = (np.full(nx, -np.inf), np.full(nx, np.inf))
             kept = nonredundant_rows(F / norms[:, None], high / norms, self.x_goal, free, np.inf)
-            F, high = F[kept], high[kept]  # in the rows' units, as before
-            self.tail_imposed = (F, high)
+            F, high = self.tail_imposed = F[kept], high[kept]
             if F.shape[0]:
                 opti.subject_to(cs.DM(F) @ X[:, H] - cs.DM(high) <= tail_slack)
             if soft:
@@ -282,19 +282,6 @@ class NonlinearMPSC:
                 )
             ],
         ).expand()
-        self._tail_excess = cs.Function("tail", [X], [tail_rows]).expand()
-
-    def _tail_rows(self, x_H, cs):
-        """The rows' excess ``Ax x + Au u - (b - margin)`` along the terminal tail from ``x_H`` (CasADi)."""
-        Ad, Bd, c = (cs.DM(a) for a in self._tail)
-        K, goal, u_eq = cs.DM(self.K), cs.DM(self.x_goal), cs.DM(self.u_eq)
-        Ax, Au = cs.DM(self.rows.Ax), cs.DM(self.rows.Au)
-        x, excess = x_H, []
-        for j in range(self.horizon, self.stages):
-            u = u_eq - K @ (x - goal)
-            x = Ad @ x + Bd @ u + c
-            excess.append(Ax @ x + Au @ u - cs.DM(self.rows.b - self.margins[j]))
-        return cs.vertcat(*excess) if excess else cs.DM.zeros(0)
 
     def reset(self, key):
         """No plan yet: ``kinf = H`` (a failure at the first step falls back to the LQR)."""
@@ -319,7 +306,8 @@ class NonlinearMPSC:
             return X, U, False, False
         dynamics = np.abs(np.asarray(self._residual(x, X.T, U.T))).max()
         rows = X[1:] @ self.rows.Ax.T + U @ self.rows.Au.T - (self.rows.b - self.margins[: self.horizon])
-        tail = np.asarray(self._tail_excess(X.T), dtype=np.float64)
+        F_tail, high_tail = self.tail_all
+        tail = F_tail @ X[-1] - high_tail
         excess = max(rows.max(), tail.max(initial=-np.inf))
         usable = bool(dynamics <= FEASIBILITY_TOL)
         return X, U, usable and bool(excess <= FEASIBILITY_TOL), usable
