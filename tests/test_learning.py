@@ -20,15 +20,16 @@ from scg_jax.config import load_config, make_from_config
 EPISODES = 16
 # Overrides of the config's training section, at this budget on seeds 0-2 (16 episodes): PPO, 128 iterations of
 # 64 copies x 32 steps (1/16 of the default budget): RMSE 1.34-1.66x LQR's against the bound of 4x, last training
-# episode's return 242-245 of 250. Half that budget with 32-unit layers stays at 14-22x. SAC, 16 k transitions
-# (about 1/10) on 16 copies, a gradient step of 128 transitions per transition: RMSE 4.1-5.0x against 10x (as
-# DDPG's test), return 98-237; 30 k transitions at 0.5 steps per transition stay at 13-29x.
+# episode's return 242-245 of 250. Half that budget with 32-unit layers stays at 14-22x. SAC, 24 k transitions
+# (about 1/7) on 16 copies, a gradient step of 128 transitions per transition: RMSE 1.04-3.17x against 10x (as
+# DDPG's test) on seeds 0-4, return 232-239. SAC's curve is steep here and the machine moves it: 16 k transitions
+# gave 4.1-5.0x on one machine and 6.3-15.6x on another (AMD EPYC); 30 k at 0.5 steps per transition stay at 13-29x.
 BUDGETS = {
     "ppo": {"total_env_steps": 262_144, "num_envs": 64},
-    "sac": {"total_env_steps": 16_000, "num_envs": 16, "utd": 1.0, "batch_size": 128},
+    "sac": {"total_env_steps": 24_000, "num_envs": 16, "utd": 1.0, "batch_size": 128},
 }
 RMSE_FACTOR = {"ppo": 4.0, "sac": 10.0}
-RETURN_SHARE = {"ppo": 0.9, "sac": 0.3}  # of the 250-step episode's best return, reached by the last episodes
+RETURN_SHARE = {"ppo": 0.9, "sac": 0.6}  # of the 250-step episode's best return, reached by the last episodes
 
 
 @pytest.fixture(scope="module")
@@ -44,8 +45,8 @@ def _policy_summary(env, params, learner, runner_state):
     return evaluate(env, params, controller, jax.random.key(123), EPISODES, measure_time=False).summary
 
 
-# SAC's run takes 16 k gradient steps: compiled optimised (level 1) it costs 32 CPU s instead of 52; PPO's 128
-# iterations cost less unoptimised (31 CPU s against 38).
+# SAC's run takes 24 k gradient steps, several times faster compiled optimised (level 1; at 16 k, 32 CPU s instead
+# of 52); PPO's 128 iterations cost less unoptimised (31 CPU s against 38).
 @pytest.mark.slow
 @pytest.mark.parametrize("algo", ["ppo", pytest.param("sac", marks=pytest.mark.optimized)])
 def test_learns_cartpole_stabilization_within_a_small_budget(cartpole, algo):
