@@ -259,6 +259,28 @@ def test_admm_linear_mpc_matches_qpoases_to_a_millinewton_with_active_input_and_
     assert np.sum(at_bound & feasible) >= 10 and np.sum(state_active & feasible) >= 5
 
 
+def test_the_fixed_step_throughput_setting_runs_its_iterations_and_matches_qpoases_on_input_bounds():
+    # benchmarks/control.py's "25 it." setting: every copy runs exactly 25 iterations at the prepared step size,
+    # whose products prepare folds once (structured.Prepared.fixed), with no polish. On the cart-pole's input-bound
+    # QPs it holds qpOASES's first input to 1.5e-6 N over the benchmark's 300 states (float32).
+    env, params = cases.make_case_env("cartpole", with_state=False)
+    reference = Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
+    case = cases.CASES["cartpole"]
+    steps, states = cases.random_states(env, reference, case.offset, case.spread, 60)
+    fast = {"admm_tol": 0.0, "admm_max_iter": 25, "admm_check_every": 25, "admm_polish_rounds": 0}
+    jax_mpc = make_linear_mpc(env, params, {"horizon": 20, **fast, "admm_adaptive_rho": False})
+    assert jax_mpc.info["structured"].prepared.fixed is not None  # the folded (rows x rows) iteration
+    casadi_mpc = make_linear_mpc_casadi(env, params, {"horizon": 20})
+    reference32 = Reference(*(jnp.asarray(a, jnp.float32) for a in reference))
+    act = jax.jit(jax.vmap(lambda x, k: jax_mpc.act(jax_mpc.reset(None, reference32), x, k, reference32)))
+    u_jax, ctrl_state = act(jnp.asarray(states, jnp.float32), jnp.asarray(steps))
+    u_casadi = np.array([casadi_mpc.act({}, x, k, reference)[0] for k, x in zip(steps, states, strict=True)])
+    np.testing.assert_array_equal(np.asarray(ctrl_state.iterations), 25)
+    np.testing.assert_allclose(np.asarray(u_jax), u_casadi, atol=1e-3)
+    lo, hi = jax_mpc.info["u_low"], jax_mpc.info["u_high"]
+    assert np.sum(np.any((np.abs(u_casadi - lo) < 1e-6) | (np.abs(u_casadi - hi) < 1e-6), axis=1)) >= 5
+
+
 def test_without_active_constraints_the_first_input_is_the_lqr_input(cartpole):
     # P is the Riccati solution, so the finite-horizon optimum starts with the infinite-horizon (LQR) input, for
     # either condensing (pre-stabilised or plain).

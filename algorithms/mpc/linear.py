@@ -113,6 +113,11 @@ class Options(setup.MPCOptions):
     admm_polish_rounds: int = option(
         3, "admm: active-set polish rounds after the ADMM (0: none; cheaper per step, less accurate at few iterations)"
     )
+    admm_adaptive_rho: bool = option(
+        True,
+        "admm: adapt the step size at the checks; false: keep the prepared one, whose products are folded once "
+        "(one (rows x rows) product per iteration: the fastest iteration, for fixed iteration counts)",
+    )
     warm_start: bool = option(True, "admm: start from the previous step's plan and multipliers, shifted")
     max_iter: int = option(40, "qpax interior-point iterations at most (float32 solves rarely stop earlier)")
     solver_tol: float = option(
@@ -386,6 +391,7 @@ def structured_mpc(problem: Problem) -> StructuredMPC:
         eps_abs=opts.admm_tol,
         eps_rel=opts.admm_tol,
         polish_rounds=opts.admm_polish_rounds,
+        adaptive_rho=opts.admm_adaptive_rho,
     )
     stage_Q = np.stack([problem.Q] * (H - 1) + [affine.P[0]])
     m = C.shape[0]
