@@ -48,15 +48,23 @@ def cartpole_episodes():
     return env, env.default_params
 
 
-def test_sqp_rti_tracks_as_well_as_ipopt_on_the_same_episodes(cartpole_episodes):
+@pytest.fixture(scope="module")
+def ipopt_episodes(cartpole_episodes):
+    env, params = cartpole_episodes
+    ipopt = make_nonlinear_mpc(env, params, {"horizon": 20})
+    return evaluate(env, params, ipopt, jax.random.key(0), 2, measure_time=False)
+
+
+# The defaults, and the QP without its active-set polish (the benchmark's cheaper cart-pole setting).
+@pytest.mark.parametrize("overrides", [{}, {"qp_polish_rounds": 0}], ids=["default", "no_polish"])
+def test_sqp_rti_tracks_as_well_as_ipopt_on_the_same_episodes(cartpole_episodes, ipopt_episodes, overrides):
     # Float32 SQP-RTI against IPOPT on the same 2 seeded cart-pole stabilisation episodes (the benchmark also runs
     # the 2D quadrotor's circle and the 3D quadrotor's stabilisation: ratios 0.9999 and 1.0002 there). Measured on
     # these 2 episodes: RMSE ratio 1.0000 (bound 1.05), inputs within 1.1e-6 N (bound 2e-2 N); the same on 4.
     env, params = cartpole_episodes
-    key = jax.random.key(0)
-    ipopt = evaluate(env, params, make_nonlinear_mpc(env, params, {"horizon": 20}), key, 2, measure_time=False)
-    rti_controller = make_nonlinear_mpc(env, params, {"horizon": 20, "solver": "sqp_rti"})
-    rti = evaluate(env, params, rti_controller, key, 2, measure_time=False)
+    ipopt = ipopt_episodes
+    rti_controller = make_nonlinear_mpc(env, params, {"horizon": 20, "solver": "sqp_rti", **overrides})
+    rti = evaluate(env, params, rti_controller, jax.random.key(0), 2, measure_time=False)
     assert rti.summary["failure_rate"] == ipopt.summary["failure_rate"] == 0.0
     assert rti.summary["rmse"] <= 1.05 * ipopt.summary["rmse"]
     np.testing.assert_allclose(rti.trajectory["u_cmd"], ipopt.trajectory["u_cmd"], atol=2e-2)
@@ -97,6 +105,7 @@ def test_sqp_rti_steps_never_retrace_and_repeat_exactly(cartpole_episodes):
         ({"solver": "acados"}, r"controllers\.nonlinear_mpc\.solver: .*ipopt, sqp, sqp_rti"),
         ({"solver": "sqp", "sqp_max_iter": 0}, r"controllers\.nonlinear_mpc\.sqp_max_iter"),
         ({"solver": "sqp", "qp_tol": -1.0}, r"controllers\.nonlinear_mpc\.qp_tol: must be >= 0"),
+        ({"solver": "sqp_rti", "qp_polish_rounds": -1}, r"controllers\.nonlinear_mpc\.qp_polish_rounds: must be >= 0"),
     ],
 )
 def test_bad_solver_options_name_the_field(cartpole_episodes, options, message):

@@ -106,6 +106,7 @@ class Options(setup.MPCOptions):
     sqp_tol: float = option(1e-6, "sqp: stop when no input of the plan moves by more than this, N")
     qp_max_iter: int = option(200, "sqp, sqp_rti: ADMM iterations at most per QP")
     qp_tol: float = option(1e-5, "sqp, sqp_rti: the QP's residual tolerance (scg_algorithms.mpc.structured)")
+    qp_polish_rounds: int = option(3, "sqp, sqp_rti: rounds of the QP's active-set polish after its ADMM (0: none)")
     merit_weight: float = option(1e4, "sqp, sqp_rti: weight of the l1 constraint violation in the line search's merit")
 
     def _check(self, path: str) -> None:
@@ -117,8 +118,9 @@ class Options(setup.MPCOptions):
         positive(f"{path}.fallback_tol", self.fallback_tol)
         for name in ("sqp_max_iter", "qp_max_iter", "sqp_tol", "merit_weight"):
             positive(f"{path}.{name}", getattr(self, name))
-        if self.qp_tol < 0:
-            raise ValueError(f"{path}.qp_tol: must be >= 0, got {self.qp_tol!r}")
+        for name in ("qp_tol", "qp_polish_rounds"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
         if self.constraint_margin < 0:
             raise ValueError(f"{path}.constraint_margin: must be >= 0, got {self.constraint_margin!r}")
 

@@ -241,6 +241,7 @@ def sqp_mpc_builder(env, prior_params, opts, name: str = "nonlinear_mpc", adapti
         check_every=10,
         eps_abs=opts.qp_tol,
         eps_rel=opts.qp_tol,
+        polish_rounds=opts.qp_polish_rounds,
         rho=structured.suggested_rho(layout, template),
         # A step size that adapts costs a Cholesky per check and copy under vmap (lax.cond runs both branches):
         # fixed at the template's, an SQP-RTI step of 1,024 2D quadrotors took 0.59 ms per copy instead of 1.16.
