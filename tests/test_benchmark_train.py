@@ -151,3 +151,39 @@ def test_page_sections_are_replaced_or_added_never_the_others(bench):
         "## `configs/a.yaml`\n\nA2\n\n## `configs/b.yaml`\n\nB1\n\n| x |\n"
     )
     assert bench.merge_section(page, "`configs/b.yaml`", "B1\n\n| x |") == page  # same run again: same page
+
+
+def test_sac_grid_points_parse_and_bad_ones_name_the_option(bench):
+    import argparse
+
+    assert bench.parse_grid_point("64:0.5") == {"num_envs": 64, "utd": 0.5}
+    assert bench.parse_grid_point("16:2:128") == {"num_envs": 16, "utd": 2.0, "batch_size": 128}
+    for bad in ("64", "64:x", "1:2:3:4", "64:0.5:1.5"):
+        with pytest.raises(argparse.ArgumentTypeError, match=r"--sac-grid: expected COPIES:UTD\[:BATCH\]"):
+            bench.parse_grid_point(bad)
+
+
+def test_sac_grid_section_ranks_by_seeds_reached_then_median_time(bench):
+    def row(num_envs, runs):
+        times = sorted(t for t, _ in runs)
+        return {
+            "num_envs": num_envs, "utd": 1.0, "batch_size": 256, "grad_steps_per_iteration": num_envs,
+            "runs": [{"reached": r, "time_s": t, "env_steps": 20_000} for t, r in runs],
+            "reached": sum(r for _, r in runs), "median_time_s": times[len(times) // 2],
+        }  # fmt: skip
+
+    record = {
+        **bench.run_record("train"), "overrides": [],
+        "sac_grid": {
+            "rmse_factor": 1.5, "threshold_rmse": 0.073, "lqr_rmse": 0.0487, "seeds": 3, "max_seconds": 120.0,
+            "total_env_steps": 150_000,
+            "rows": [row(16, [(5.0, True), (30.0, False), (6.0, True)]),
+                     row(64, [(9.0, True), (8.0, True), (10.0, True)]),
+                     row(256, [(4.0, True), (50.0, False), (60.0, False)])],
+        },
+    }  # fmt: skip
+    text = bench.grid_section(record)
+    table = [line for line in text.splitlines() if line.startswith("| ") and line[2].isdigit()]
+    # All three seeds first, then two of three (median 6 s), then one of three, whatever its fastest seed.
+    assert [line.split(" | ")[0] for line in table] == ["| 64", "| 16", "| 256"]
+    assert "| 3 / 3 | 9.0 |" in table[0] and "30.0* s (20 k)" in table[1]
