@@ -62,6 +62,7 @@ from throughput import measure_pair  # benchmarks/throughput.py: compile, calibr
 import scg_jax
 from scg_algorithms.base import Reference
 from scg_algorithms.evaluation import evaluate
+from scg_algorithms.gp_mpc.controller import learn
 from scg_algorithms.mpc.cases import CASES, make_case_env, random_states
 from scg_algorithms.mpc.linear import make_linear_mpc, make_linear_mpc_casadi
 from scg_algorithms.mpc.nonlinear import make_nonlinear_mpc
@@ -441,9 +442,10 @@ def measure_qp_solvers(name: str, with_state: bool, args) -> dict:
 
 # The throughput settings of linear MPC's admm (tolerance 0: every copy runs exactly this many iterations, so none
 # waits for the slowest), chosen by a sweep against qpOASES on the parity states: "25 it.": 25 iterations at the
-# prepared step size (its products folded once: one (rows x rows) product per iteration), no polish, the fastest
-# that holds the cart-pole's input-bound QPs to 1e-3 N; "50 it. + polish": 50 iterations, the step size adapted
-# every 5, one round of active-set polish, for the stiffer 2D quadrotor and for state rows.
+# prepared step size (its products folded once: one (rows x rows) product per iteration), no polish (on the
+# cart-pole's input-bound QPs the error reaches float32's floor, 1.5e-6 N, from 10 iterations); "50 it. + polish":
+# 50 iterations, the step size adapted every 5, one round of active-set polish, the closer of the two on the stiffer
+# 2D quadrotor (the page gives each setting's error).
 THROUGHPUT = {
     "25 it.": {
         "admm_tol": 0.0,
@@ -462,8 +464,49 @@ RTI_TASKS = {
 }
 
 
+GP_MPC_CONFIG = ROOT / "configs" / "paper_cartpole_gp_mpc.yaml"
+GP_PRIOR_SCALE = 1.5
+
+
+def _rti_step_s(controller, env, params, key, args, batch: int = 1024) -> float:
+    """Seconds per copy of one vmapped step of ``batch`` copies that have a plan (the second step: the first
+    iterates)."""
+    reference = Reference(*env.reference(params))
+    keys = jax.random.split(key, batch)
+    obs, _ = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
+    act = jax.jit(jax.vmap(controller.act, in_axes=(0, 0, None, None)))
+    ctrl = jax.vmap(controller.reset, in_axes=(0, None))(keys, reference)
+    _, ctrl = act(ctrl, obs, jnp.zeros((), jnp.int32), reference)
+    return _per_call(act, (ctrl, obs, jnp.ones((), jnp.int32), reference), args.repeats, args.min_time) / batch
+
+
+def measure_gp_rti(args) -> dict:
+    """GP-MPC on SQP-RTI against the nonlinear SQP-RTI on the true model, per copy and step at 1,024 copies, on
+    ``configs/paper_cartpole_gp_mpc.yaml`` (150% prior): the GP of one learning round, the config's GP-MPC and
+    nonlinear MPC sections (both horizon 20)."""
+    cfg = load_config(GP_MPC_CONFIG)
+    env, params = make_from_config(cfg)
+    prior = scg_jax.prior_params(env, params, GP_PRIOR_SCALE)
+    options = {**dict(cfg.controllers["gp_mpc"]), "solver": "sqp_rti", "rounds": 1, "eval_episodes": 1}
+    tick = time.perf_counter()
+    result = learn(env, params, prior, options)
+    learn_s = time.perf_counter() - tick
+    nmpc = make_nonlinear_mpc(env, params, {**dict(cfg.controllers["nonlinear_mpc"]), "solver": "sqp_rti"})
+    key = jax.random.key(args.seed)
+    gp_s = _rti_step_s(result.controller, env, params, key, args)
+    nmpc_s = _rti_step_s(nmpc, env, params, key, args)
+    return {
+        "config": str(GP_MPC_CONFIG.relative_to(ROOT)),
+        "transitions": int(result.data[0].shape[0]),
+        "learn_s": learn_s,
+        "gp_mpc_s_per_copy_step_1024": gp_s,
+        "nmpc_s_per_copy_step_1024": nmpc_s,
+        "ratio": gp_s / nmpc_s,
+    }
+
+
 # SQP-RTI's settings: its defaults, and its QP without the active-set polish (on the cart-pole the same closed loop
-# at about 0.7x the time per step; the 2D quadrotor's tracking needs the polish: RMSE 3.3x without it).
+# at about 0.6x the time per step; the 2D quadrotor's tracking needs the polish: RMSE 3.3x without it).
 RTI_SETTINGS = {"default": {}, "qp_polish_rounds: 0": {"qp_polish_rounds": 0}}
 
 
@@ -483,17 +526,11 @@ def measure_rti(name: str, args) -> list[dict]:
         obs_host = np.asarray(result_ipopt.trajectory["obs"])[step, 0]
         _, ipopt_state = ipopt.act(ipopt_state, obs_host, step, reference)
     ipopt_s = float(np.median(ipopt_state.solve_time_s[1:]))
-    batch = 1024
-    keys = jax.random.split(key, batch)
-    obs, _ = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
     rows = []
     for setting, overrides in RTI_SETTINGS.items():
         rti = make_nonlinear_mpc(env, params, {"horizon": args.horizon, "solver": "sqp_rti", **overrides})
         result_rti = evaluate(env, params, rti, key, args.rti_episodes, measure_time=False)
-        act = jax.jit(jax.vmap(rti.act, in_axes=(0, 0, None, None)))
-        ctrl = jax.vmap(rti.reset, in_axes=(0, None))(keys, reference)
-        _, ctrl = act(ctrl, obs, jnp.zeros((), jnp.int32), reference)  # the first step iterates; later ones do not
-        rti_s = _per_call(act, (ctrl, obs, jnp.ones((), jnp.int32), reference), args.repeats, args.min_time) / batch
+        rti_s = _rti_step_s(rti, env, params, key, args)
         rows.append(
             {
                 "system": name,
@@ -511,7 +548,7 @@ def measure_rti(name: str, args) -> list[dict]:
     return rows
 
 
-def write_solvers_markdown(path, qp_rows: list[dict], rti_rows: list[dict], meta: dict) -> None:
+def write_solvers_markdown(path, qp_rows: list[dict], rti_rows: list[dict], meta: dict, gp_row: dict) -> None:
     batches = meta["config"]["batches"]
     columns = ["system", "constraints", "u0 max error vs qpOASES (N)", "feasible / states", "u0 at a bound"]
     columns += [f"admm QPs/s x{b}" for b in batches]
@@ -572,6 +609,12 @@ at a time on the host. env: one vmapped `env.step`. A copy whose iterate still v
 setting's largest errors come from. Throughput settings: {settings}. Load average at the start and end:
 {meta["load_average"]} / {meta["load_average_end"]}.
 """ + "\n".join(fast_lines + rti_lines)
+    notes += (
+        f"\n\nGP-MPC on SQP-RTI (`{gp_row['config']}`, 150% prior, the GP of one learning round on "
+        f"{gp_row['transitions']} transitions) against the nonlinear SQP-RTI on the true model, the config's "
+        f"sections, per copy and step at 1,024 copies: {gp_row['gp_mpc_s_per_copy_step_1024']:.2e} s against "
+        f"{gp_row['nmpc_s_per_copy_step_1024']:.2e} s, {gp_row['ratio']:.1f}x."
+    )
     write_markdown_table(path, "Structured MPC solvers", meta, columns, rows, notes)
 
 
@@ -745,9 +788,11 @@ def main(argv=None) -> int:
                 for r in measure_rti(name, args):
                     rti_rows.append(r)
                     console.print(f"{name} SQP-RTI: {r}", highlight=False)
+        gp_row = measure_gp_rti(args)
+        console.print(f"GP-MPC SQP-RTI: {gp_row}", highlight=False)
         meta["load_average_end"] = load_average()
-        write_json(args.json.with_name("mpc_solvers.json"), {**meta, "qp": qp_rows, "rti": rti_rows})
-        write_solvers_markdown(args.solvers_markdown, qp_rows, rti_rows, meta)
+        write_json(args.json.with_name("mpc_solvers.json"), {**meta, "qp": qp_rows, "rti": rti_rows, "gp": gp_row})
+        write_solvers_markdown(args.solvers_markdown, qp_rows, rti_rows, meta, gp_row)
         console.print(f"solvers page written to {args.solvers_markdown}", highlight=False)
         if set(args.parts) == {"solvers"}:
             return 0

@@ -262,7 +262,7 @@ def test_admm_linear_mpc_matches_qpoases_to_a_millinewton_with_active_input_and_
 def test_the_fixed_step_throughput_setting_runs_its_iterations_and_matches_qpoases_on_input_bounds():
     # benchmarks/control.py's "25 it." setting: every copy runs exactly 25 iterations at the prepared step size,
     # whose products prepare folds once (structured.Prepared.fixed), with no polish. On the cart-pole's input-bound
-    # QPs it holds qpOASES's first input to 1.5e-6 N over the benchmark's 300 states (float32).
+    # QPs it holds qpOASES's first input to 1.5e-6 N over the benchmark's 1,000 states (float32).
     env, params = cases.make_case_env("cartpole", with_state=False)
     reference = Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
     case = cases.CASES["cartpole"]
