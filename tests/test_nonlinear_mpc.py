@@ -159,3 +159,54 @@ def test_bad_options_name_the_field(options, message):
     env = scg_jax.make("cartpole")
     with pytest.raises(ValueError, match=message):
         make_nonlinear_mpc(env, env.default_params, options)
+
+
+def test_ctrl_c_during_an_ipopt_solve_raises_instead_of_falling_back():
+    # CasADi catches a Ctrl-C between IPOPT's iterations and stops IPOPT with User_Requested_Stop, which reads like a
+    # failed solve: the controller would take its fallback and the evaluation go on (seen as a piped `compare` that
+    # finished with status 0 after Ctrl-C). Here the solver reports that status after solving as usual.
+    env = scg_jax.make("cartpole")
+    params = env.default_params
+    reference = _reference(env, params)
+    mpc = make_nonlinear_mpc(env, params, {"horizon": 10})
+
+    class Stopped:
+        def __init__(self, solver):
+            self.solver = solver
+
+        def __call__(self, **kwargs):
+            return self.solver(**kwargs)
+
+        def stats(self):
+            return {**self.solver.stats(), "return_status": "User_Requested_Stop", "success": False}
+
+    x0 = reference.x_ref[0] + 0.05
+    u, _ = mpc.act(mpc.reset(None, reference), x0, 0, reference)  # the real solver: an input, no interrupt
+    assert np.all(np.isfinite(u))
+    mpc._solver_cold = Stopped(mpc._solver_cold)
+    with pytest.raises(KeyboardInterrupt):
+        mpc.act(mpc.reset(None, reference), x0, 0, reference)
+
+
+def test_ctrl_c_inside_deferred_interrupt_is_raised_after_the_block():
+    # What the IPOPT call runs in: a SIGINT inside the block does not interrupt it (CasADi would catch it and stop
+    # the solver), it is raised when the block ends, and Python's handler is back in place.
+    import os
+    import signal
+
+    from scg_algorithms.mpc.nonlinear import deferred_interrupt
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        finished = []
+        with pytest.raises(KeyboardInterrupt):
+            with deferred_interrupt():
+                os.kill(os.getpid(), signal.SIGINT)
+                sum(range(10_000))  # Python code runs on: the handler only records the signal
+                finished.append(True)
+        assert finished == [True]
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        with deferred_interrupt():  # no signal: nothing raised
+            pass
+    finally:
+        signal.signal(signal.SIGINT, previous)

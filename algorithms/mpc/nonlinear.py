@@ -48,9 +48,13 @@ counted in the controller state (``num_failures``, ``fallbacks``), and the input
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
+import signal
+import threading
 import time
+from collections.abc import Iterator
 from typing import NamedTuple
 
 import casadi as cs
@@ -123,6 +127,46 @@ class Options(setup.MPCOptions):
                 raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
         if self.constraint_margin < 0:
             raise ValueError(f"{path}.constraint_margin: must be >= 0, got {self.constraint_margin!r}")
+
+
+@contextlib.contextmanager
+def deferred_interrupt() -> Iterator[None]:
+    """Hold a Ctrl-C that arrives during the block (a CasADi solve) and raise it as ``KeyboardInterrupt`` after.
+
+    CasADi checks for Ctrl-C between IPOPT's iterations and function evaluations; it catches the
+    ``KeyboardInterrupt``, logs a warning on stderr and stops the solver as if the solve had failed, and a host-side
+    evaluation would take its fallback and go on. In the main thread, with Python's default handler in place, the
+    block runs with a handler that only records the signal, so the solve finishes (milliseconds) and the interrupt
+    is raised once it returns; elsewhere the block runs as it is (``raise_if_interrupted`` then catches IPOPT's stop).
+    """
+    if threading.current_thread() is not threading.main_thread() or (
+        signal.getsignal(signal.SIGINT) is not signal.default_int_handler
+    ):
+        yield
+        return
+    received = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if received:
+        raise KeyboardInterrupt
+
+
+def raise_if_interrupted(stats: dict) -> None:
+    """Raise the ``KeyboardInterrupt`` of a Ctrl-C that CasADi caught during an IPOPT solve (outside
+    ``deferred_interrupt``'s reach): CasADi logs a warning and stops IPOPT with ``User_Requested_Stop``, which reads
+    like any failed solve.
+
+    Args:
+        stats: the solver's ``stats()`` after the call.
+
+    Raises:
+        KeyboardInterrupt: the solve was stopped by Ctrl-C.
+    """
+    if stats.get("return_status") == "User_Requested_Stop":
+        raise KeyboardInterrupt
 
 
 class NMPCState(NamedTuple):
@@ -338,9 +382,11 @@ class NonlinearMPC:
         else:
             solver, args = self._solver_cold, {}
         tick = time.perf_counter()
-        out = solver(x0=z0, p=p, lbg=lbg, ubg=ubg, **args)
+        with deferred_interrupt():
+            out = solver(x0=z0, p=p, lbg=lbg, ubg=ubg, **args)
         wall = time.perf_counter() - tick
         stats = solver.stats()
+        raise_if_interrupted(stats)
         z = _vector(out["x"])
         g = _vector(out["g"])
         violation = np.concatenate([lbg - g, g - ubg, [0.0]])

@@ -47,6 +47,7 @@ import numpy as np
 from scg_algorithms import controller_setup as setup
 from scg_algorithms.base import option, parse_options, positive
 from scg_algorithms.lqr import discrete_lqr_gain
+from scg_algorithms.mpc.nonlinear import deferred_interrupt
 from scg_algorithms.safety_filters import mpsc_tightening as tight
 from scg_algorithms.safety_filters.backup import validation_states
 from scg_algorithms.safety_filters.base import (
@@ -298,7 +299,8 @@ class NonlinearMPSC:
         rows, the least-violating plan where ``success`` is False)."""
         if x_guess is None:
             x_guess, u_guess = np.tile(x, (self.horizon + 1, 1)), np.tile(self.u_eq, (self.horizon, 1))
-        X, U = self._solve(x, u_uncertified, x_guess.T, u_guess.T)
+        with deferred_interrupt():  # a Ctrl-C here would be caught by CasADi and read as a failed solve
+            X, U = self._solve(x, u_uncertified, x_guess.T, u_guess.T)
         X = np.asarray(X, dtype=np.float64).reshape(self.nx, -1).T
         U = np.asarray(U, dtype=np.float64).reshape(self.nu, -1).T
         # Success from the solution itself (the Function hides IPOPT's status): finite, dynamics met, rows held.
