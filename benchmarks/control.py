@@ -370,6 +370,12 @@ def _per_call(fn, args, repeats: int, min_time: float) -> float:
     return float(np.median(runs))
 
 
+def _error_summary(u, u_ref, feasible) -> dict:
+    """Largest and median first-input error (N) over the states qpOASES solves (``feasible``)."""
+    error = np.abs(u - u_ref).max(axis=1)[feasible]
+    return {"max": float(error.max()), "median": float(np.median(error))}
+
+
 def measure_qp_solvers(name: str, with_state: bool, args) -> dict:
     """QPs/s of linear MPC with admm and qpax at each batch, CasADi qpOASES and OSQP one at a time, the env's
     steps/s at each batch, and admm's largest first-input difference from qpOASES over ``parity_states`` states."""
@@ -411,13 +417,7 @@ def measure_qp_solvers(name: str, with_state: bool, args) -> dict:
         parity_at_input_bound=float(at_bound.mean()),
         parity_max_error_N=float(error.max()),
         parity_median_error_N=float(np.median(error)),
-        throughput_error_N={
-            setting: {
-                "max": float(np.abs(u_jax[setting] - u_ref).max(axis=1)[feasible].max()),
-                "median": float(np.median(np.abs(u_jax[setting] - u_ref).max(axis=1)[feasible])),
-            }
-            for setting in THROUGHPUT
-        },
+        throughput_error_N={setting: _error_summary(u_jax[setting], u_ref, feasible) for setting in THROUGHPUT},
         qpoases_qps=1.0 / casadi_s["qpoases"],
         osqp_qps=1.0 / casadi_s["osqp"],
     )

@@ -608,13 +608,18 @@ def sac_grid(env, params, cfg, points: list[dict], seeds: int, limits: tuple, ch
     return rows
 
 
-def grid_section(record: dict) -> str:
-    """The SAC settings page's section for one ``--sac-grid`` run."""
-    grid = record["sac_grid"]
+def _section_head(record: dict) -> list[str]:
+    """A section's first lines: the run's config overrides and the machine line."""
     lines = []
     if record["overrides"]:
         lines += ["Overrides: " + ", ".join(f"`{item}`" for item in record["overrides"]) + ".", ""]
-    lines += [machine_line(record), ""]
+    return [*lines, machine_line(record), ""]
+
+
+def grid_section(record: dict) -> str:
+    """The SAC settings page's section for one ``--sac-grid`` run."""
+    grid = record["sac_grid"]
+    lines = _section_head(record)
     lines += [
         f"SAC's time to {grid['rmse_factor']}x LQR's RMSE ({grid['threshold_rmse']:.4f}; LQR {grid['lqr_rmse']:.4f}), "
         f"no crash, from seeds 0-{grid['seeds'] - 1}: training wall time, compile included, evaluation excluded; the "
@@ -818,10 +823,7 @@ def main(argv=None) -> int:
 def section(record: dict) -> str:
     """The page's section for one run: overrides, the machine line, the throughput table, the time-to-threshold
     table and the run split."""
-    lines = []
-    if record["overrides"]:
-        lines += ["Overrides: " + ", ".join(f"`{item}`" for item in record["overrides"]) + ".", ""]
-    lines += [machine_line(record), ""]
+    lines = _section_head(record)
     if record.get("throughput"):
         lines += [
             "Training throughput; the raw env (make_rollout, constant action) is the baseline in the same run:",
