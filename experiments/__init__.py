@@ -58,7 +58,8 @@ def reproduce(names: Sequence[str], out, profile: str = "quick", seeds: int = 1,
     progress = as_progress(progress)
     out = Path(out)
     run = {"profile": profile, "seeds": int(seeds), "jobs": int(jobs), "results": names, "done": [],
-           "cache_hits": 0, "cache_misses": 0, "wall_s": 0.0, "finished": False}  # fmt: skip
+           "cache_entries_at_start": cache_entries(out / "cache"), "cache_hits": 0, "cache_misses": 0, "wall_s": 0.0,
+           "finished": False}  # fmt: skip
     start = time.perf_counter()
     sections = {}
 
@@ -186,13 +187,19 @@ def _write_report(out: Path, profile: str, seeds: int, run: dict | None = None) 
     write_atomic(out / "report.md", lambda f: f.write(text.encode()))
 
 
+def cache_entries(cache: Path) -> int:
+    """Complete or partial entries (folders) in the cache folder ``cache``; 0 when it does not exist."""
+    return sum(1 for path in cache.iterdir() if path.is_dir()) if cache.is_dir() else 0
+
+
 def run_line(run: dict) -> str:
-    """The report's line about the run that wrote it: wall time, processes, cache hits (0 hits: a cold run)."""
-    hits, made = run["cache_hits"], run["cache_misses"]
+    """The report's line about the run that wrote it: wall time, processes, cache use. A cold run starts with no
+    cache entry; its hits are entries one result made and another one used (a shared policy or GP)."""
+    hits, made, before = run["cache_hits"], run["cache_misses"], run["cache_entries_at_start"]
     state = "" if run["finished"] else f" (running: {len(run['done'])} of {len(run['results'])} results done)"
-    cold = "a cold run" if hits == 0 else "not a cold run"
+    cold = "a cold run" if before == 0 else "not a cold run"
     return (
         f"This run: {', '.join(run['results'])} in {run['jobs']} process(es); wall time {run['wall_s']:.0f} s from "
-        f"the start to this report{state}; cache: {hits} hit(s), {made} entr{'y' if made == 1 else 'ies'} made "
-        f"({cold})."
+        f"the start to this report{state}; cache: {before} entr{'y' if before == 1 else 'ies'} at the start "
+        f"({cold}), {hits} hit(s), {made} entr{'y' if made == 1 else 'ies'} made."
     )

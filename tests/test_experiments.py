@@ -239,13 +239,15 @@ def test_the_report_counts_not_converged_claims_apart(tmp_path):
     (tmp_path / "robustness").mkdir()
     section = {"markdown": "## R\n", "claims": [c.__dict__ for c in claims]}
     common.write_data(tmp_path / "robustness" / "section.json", section)
-    run = {"results": ["robustness"], "done": [], "jobs": 1, "wall_s": 12.3, "cache_hits": 2, "cache_misses": 5,
-           "finished": False}  # fmt: skip
+    run = {"results": ["robustness"], "done": [], "jobs": 1, "wall_s": 12.3, "cache_entries_at_start": 0,
+           "cache_hits": 2, "cache_misses": 5, "finished": False}  # fmt: skip
     _write_report(tmp_path, "quick", 1, run)
     report = (tmp_path / "report.md").read_text()
     assert f"Claims: 1 does not hold, 1 holds, 1 {common.NOT_CONVERGED}\n" in report
-    assert "wall time 12 s from the start to this report (running: 0 of 1 results done); cache: 2 hit(s), 5 entries " \
-           "made (not a cold run)." in report  # fmt: skip
+    assert "wall time 12 s from the start to this report (running: 0 of 1 results done); cache: 0 entries at the " \
+           "start (a cold run), 2 hit(s), 5 entries made." in report  # fmt: skip
+    _write_report(tmp_path, "quick", 1, {**run, "cache_entries_at_start": 1, "finished": True})
+    assert "report; cache: 1 entry at the start (not a cold run), 2 hit(s)" in (tmp_path / "report.md").read_text()
 
 
 def test_a_cache_entry_is_made_once_when_two_workers_ask_for_it(tmp_path):
@@ -315,6 +317,7 @@ def test_learning_and_constraint_results_at_the_tiny_budget_and_the_cache(tmp_pa
     assert curve_file.stat().st_mtime_ns == cached
     run = json.loads((tmp_path / "run.json").read_text())
     assert (run["cache_hits"], run["cache_misses"]) == (1, 0)
+    assert run["cache_entries_at_start"] == len([p for p in (tmp_path / "cache").iterdir() if p.is_dir()]) > 0
     assert json.loads(curve_file.read_text())["rows"][0]["rmse"] == pytest.approx(float(rows[0]["rmse"]))
 
     box = next(c for c in constraint.claims if c.text.endswith("linear MPC with the 150% prior violates the box"))
