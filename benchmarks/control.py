@@ -441,20 +441,17 @@ def measure_qp_solvers(name: str, with_state: bool, args) -> dict:
 
 
 # The throughput settings of linear MPC's admm (tolerance 0: every copy runs exactly this many iterations, so none
-# waits for the slowest), chosen by a sweep against qpOASES on the parity states: "25 it.": 25 iterations at the
-# prepared step size (its products folded once: one (rows x rows) product per iteration), no polish (on the
-# cart-pole's input-bound QPs the error reaches float32's floor, 1.5e-6 N, from 10 iterations); "50 it. + polish":
-# 50 iterations, the step size adapted every 5, one round of active-set polish, the closer of the two on the stiffer
-# 2D quadrotor (the page gives each setting's error).
+# waits for the slowest; the step size stays the prepared one times admm_rho_scale, so prepare folds its products
+# once and an iteration is one (rows x rows) product; no polish), chosen by a sweep of iterations (25-400) and step
+# factors (0.3-100) against qpOASES on the parity states: "25 it.": on the cart-pole's input-bound QPs the error
+# reaches float32's floor, 1.5e-6 N, from 10 iterations; "100 it., step x10": the stiffer 2D quadrotor's input-bound
+# QPs within 7e-4 N (x1: 25 of 1,000 states beyond 1e-3 N; 50 iterations at x10: 8.9e-4 N); "200 it., step x30":
+# the cart-pole with its cart box within 3.1e-4 N (150 iterations: 5 states beyond 1e-3 N; 300: 2.5e-5 N).
+_FIXED = {"admm_tol": 0.0, "admm_polish_rounds": 0, "admm_adaptive_rho": False}
 THROUGHPUT = {
-    "25 it.": {
-        "admm_tol": 0.0,
-        "admm_max_iter": 25,
-        "admm_check_every": 25,
-        "admm_polish_rounds": 0,
-        "admm_adaptive_rho": False,
-    },
-    "50 it. + polish": {"admm_tol": 0.0, "admm_max_iter": 50, "admm_check_every": 5, "admm_polish_rounds": 1},
+    "25 it.": {**_FIXED, "admm_max_iter": 25, "admm_check_every": 25},
+    "100 it., step x10": {**_FIXED, "admm_max_iter": 100, "admm_check_every": 100, "admm_rho_scale": 10.0},
+    "200 it., step x30": {**_FIXED, "admm_max_iter": 200, "admm_check_every": 200, "admm_rho_scale": 30.0},
 }
 
 RTI_TASKS = {

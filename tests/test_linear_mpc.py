@@ -259,23 +259,43 @@ def test_admm_linear_mpc_matches_qpoases_to_a_millinewton_with_active_input_and_
     assert np.sum(at_bound & feasible) >= 10 and np.sum(state_active & feasible) >= 5
 
 
-def test_the_fixed_step_throughput_setting_runs_its_iterations_and_matches_qpoases_on_input_bounds():
-    # benchmarks/control.py's "25 it." setting: every copy runs exactly 25 iterations at the prepared step size,
-    # whose products prepare folds once (structured.Prepared.fixed), with no polish. On the cart-pole's input-bound
-    # QPs it holds qpOASES's first input to 1.5e-6 N over the benchmark's 1,000 states (float32).
-    env, params = cases.make_case_env("cartpole", with_state=False)
+FIXED_STEP = {"admm_tol": 0.0, "admm_polish_rounds": 0, "admm_adaptive_rho": False}
+
+
+@pytest.mark.parametrize(
+    "system, with_state, iterations, rho_scale",
+    [("cartpole", False, 25, 1.0), ("quadrotor_2d", False, 100, 10.0), ("cartpole", True, 200, 30.0)],
+    ids=["cartpole_25", "quadrotor_2d_100_x10", "cartpole_box_200_x30"],
+)
+def test_the_fixed_step_throughput_settings_run_their_iterations_and_match_qpoases(
+    system, with_state, iterations, rho_scale
+):
+    # benchmarks/control.py's throughput settings: every copy runs exactly `iterations` iterations at the prepared
+    # step size times `rho_scale`, whose products prepare folds once (structured.Prepared.fixed), with no polish.
+    # Over the benchmark's 1,000 states they hold qpOASES's first input to 1.5e-6 N (cart-pole, input bounds),
+    # 7e-4 N (2D quadrotor, input bounds; the unscaled step size leaves 25 states beyond 1e-3 N) and 3.1e-4 N
+    # (cart-pole with its 0.3 m cart box); here 60 of those states, float32.
+    env, params = cases.make_case_env(system, with_state=with_state)
     reference = Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
-    case = cases.CASES["cartpole"]
+    case = cases.CASES[system]
     steps, states = cases.random_states(env, reference, case.offset, case.spread, 60)
-    fast = {"admm_tol": 0.0, "admm_max_iter": 25, "admm_check_every": 25, "admm_polish_rounds": 0}
-    jax_mpc = make_linear_mpc(env, params, {"horizon": 20, **fast, "admm_adaptive_rho": False})
-    assert jax_mpc.info["structured"].prepared.fixed is not None  # the folded (rows x rows) iteration
+    fast = {**FIXED_STEP, "admm_max_iter": iterations, "admm_check_every": iterations}
+    jax_mpc = make_linear_mpc(env, params, {"horizon": 20, **fast, "admm_rho_scale": rho_scale})
+    prepared = jax_mpc.info["structured"].prepared
+    unscaled = make_linear_mpc(env, params, {"horizon": 20, **fast}).info["structured"].prepared
+    np.testing.assert_allclose(float(prepared.rho), rho_scale * float(np.min(prepared.lam)), rtol=1e-5)
+    np.testing.assert_allclose(float(unscaled.rho), float(np.min(unscaled.lam)), rtol=1e-5)
+    GT, lam = (np.asarray(a, np.float64) for a in (prepared.GT, prepared.lam))
+    folded = (GT / (lam + float(prepared.rho))) @ GT.T  # the one (rows x rows) product per iteration
+    np.testing.assert_allclose(np.asarray(prepared.fixed), folded, rtol=1e-4, atol=1e-6 * np.abs(folded).max())
     casadi_mpc = make_linear_mpc_casadi(env, params, {"horizon": 20})
     reference32 = Reference(*(jnp.asarray(a, jnp.float32) for a in reference))
     act = jax.jit(jax.vmap(lambda x, k: jax_mpc.act(jax_mpc.reset(None, reference32), x, k, reference32)))
     u_jax, ctrl_state = act(jnp.asarray(states, jnp.float32), jnp.asarray(steps))
-    u_casadi = np.array([casadi_mpc.act({}, x, k, reference)[0] for k, x in zip(steps, states, strict=True)])
-    np.testing.assert_array_equal(np.asarray(ctrl_state.iterations), 25)
+    solved = [casadi_mpc.act({}, x, k, reference) for k, x in zip(steps, states, strict=True)]
+    u_casadi = np.array([u for u, _ in solved])
+    assert all(info["success"] for _, info in solved)
+    np.testing.assert_array_equal(np.asarray(ctrl_state.iterations), iterations)
     np.testing.assert_allclose(np.asarray(u_jax), u_casadi, atol=1e-3)
     lo, hi = jax_mpc.info["u_low"], jax_mpc.info["u_high"]
     assert np.sum(np.any((np.abs(u_casadi - lo) < 1e-6) | (np.abs(u_casadi - hi) < 1e-6), axis=1)) >= 5
@@ -357,6 +377,7 @@ def test_mpc_holds_an_input_bound_that_lqr_violates():
         ({"r_diag": [0.1, 0.1]}, r"controllers\.linear_mpc\.r_diag: expected 1 values, got 2"),
         ({"r_diag": [0.0]}, r"controllers\.linear_mpc\.r_diag: .*positive definite"),
         ({"solver_tol": 0.0}, r"controllers\.linear_mpc\.solver_tol: must be positive"),
+        ({"admm_rho_scale": 0.0}, r"controllers\.linear_mpc\.admm_rho_scale: must be positive"),
         ({"soft_constraints": True, "slack_l1": 0, "slack_l2": 0}, r"controllers\.linear_mpc\.slack_l1: "),
     ],
 )

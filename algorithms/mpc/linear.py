@@ -118,6 +118,11 @@ class Options(setup.MPCOptions):
         "admm: adapt the step size at the checks; false: keep the prepared one, whose products are folded once "
         "(one (rows x rows) product per iteration: the fastest iteration, for fixed iteration counts)",
     )
+    admm_rho_scale: float = option(
+        1.0,
+        "admm: factor on the step size a cold solve starts from, the smallest generalised eigenvalue of the "
+        "condensed Hessian and the rows' Gram matrix (with admm_adaptive_rho false: the step size throughout)",
+    )
     warm_start: bool = option(True, "admm: start from the previous step's plan and multipliers, shifted")
     max_iter: int = option(40, "qpax interior-point iterations at most (float32 solves rarely stop earlier)")
     solver_tol: float = option(
@@ -132,7 +137,7 @@ class Options(setup.MPCOptions):
         for name in ("horizon", "max_iter", "admm_max_iter", "admm_check_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{path}.{name}: must be a positive integer, got {getattr(self, name)!r}")
-        for name in ("solver_tol", "feasibility_tol"):
+        for name in ("solver_tol", "feasibility_tol", "admm_rho_scale"):
             positive(f"{path}.{name}", getattr(self, name))
         for name in ("slack_l1", "slack_l2", "admm_tol", "admm_polish_rounds"):
             if getattr(self, name) < 0:
@@ -392,6 +397,7 @@ def structured_mpc(problem: Problem) -> StructuredMPC:
         eps_rel=opts.admm_tol,
         polish_rounds=opts.admm_polish_rounds,
         adaptive_rho=opts.admm_adaptive_rho,
+        rho_scale=opts.admm_rho_scale,
     )
     stage_Q = np.stack([problem.Q] * (H - 1) + [affine.P[0]])
     m = C.shape[0]

@@ -199,7 +199,8 @@ class Settings:
         rho: the initial step size ``t`` (a warm start brings its own); ``None``: the smallest generalised
             eigenvalue of ``(H, G^T G)`` for ``solve_prepared`` (``suggested_rho``: on the 2D quadrotor's QP it
             reached 5e-4 N in 25 iterations where ``sqrt(lam_min lam_max)`` needed 50), ``DEFAULT_RHO`` for
-            ``solve`` (pass the ``suggested_rho`` of a typical problem). adaptive_rho: update ``t`` at the checks
+            ``solve`` (pass the ``suggested_rho`` of a typical problem). rho_scale: a factor on that initial step
+            size (a fixed-step solve's step size, tuned against a reference). adaptive_rho: update ``t`` at the checks
             (``False``: ``prepare`` folds the products for the initial ``t``). rho_min, rho_max: bounds of ``t``.
         alpha: relaxation in (0, 2). refactor_ratio: ``solve`` refactorises when ``t`` has moved by this factor.
         polish_rounds: rounds of the active-set polish after the ADMM (0: none; see ``_polish``).
@@ -214,6 +215,7 @@ class Settings:
     eps_rel: float = 1e-5
     eps_infeasible: float = 1e-5
     rho: float | None = None
+    rho_scale: float = 1.0
     adaptive_rho: bool = True
     rho_min: float = 1e-9
     rho_max: float = 1e6
@@ -229,7 +231,7 @@ class Settings:
             )
         if not 0.0 < self.alpha < 2.0:
             raise ValueError(f"Settings.alpha: must be in (0, 2), got {self.alpha!r}")
-        for name in ("rho", "rho_min", "rho_max", "refactor_ratio"):
+        for name in ("rho", "rho_scale", "rho_min", "rho_max", "refactor_ratio"):
             value = getattr(self, name)
             if value is not None and not value > 0:
                 raise ValueError(f"Settings.{name}: must be positive, got {value!r}")
@@ -761,7 +763,8 @@ def solve(layout: Layout, qp: HorizonQP, x_init, warm: Warm | None = None, setti
         return Hv + gs + GTy, (Hv, GTy, gs)
 
     ops = _Operators(update, refactor, dual, lambda y: Gs.T @ y, lambda v: v)
-    s0, y0, t0 = _start(data, warm, settings, DEFAULT_RHO if settings.rho is None else settings.rho)
+    rho0 = (DEFAULT_RHO if settings.rho is None else settings.rho) * settings.rho_scale
+    s0, y0, t0 = _start(data, warm, settings, rho0)
     # A factor stale for every t, so that the first refactor computes it.
     factor = (jnp.zeros((Hs.shape[0], Gs.shape[0] + 1), dtype), jnp.asarray(jnp.inf, dtype))
     result = _admm(layout, ops, data, s0, y0, t0, factor, settings)
@@ -878,7 +881,7 @@ def prepare(layout: Layout, template: HorizonQP, settings: Settings = Settings()
     lam, U = np.linalg.eigh(0.5 * (C + C.T))
     T = L_inv.T @ U
     GT = Gs @ T
-    rho = float(lam.min()) if settings.rho is None else settings.rho
+    rho = (float(lam.min()) if settings.rho is None else settings.rho) * settings.rho_scale
     fixed = None if settings.adaptive_rho else (GT / (lam + rho)) @ GT.T
     cast = lambda a: None if a is None else jnp.asarray(a, dtype)  # noqa: E731
     return Prepared(
