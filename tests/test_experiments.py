@@ -67,7 +67,8 @@ def test_each_result_writes_data_png_and_its_report_section(tiny):
     run = json.loads((out / "run.json").read_text())
     assert run["finished"] and run["done"][-1] == "throughput" and run["jobs"] == 2  # throughput alone, last
     assert run["wall_s"] >= max(s.wall_s for s in sections.values())
-    assert f"in 2 process(es); wall time {run['wall_s']:.0f} s from the start to this report; cache: 0 hit(s)" in report
+    head = f"in 2 process(es); wall time {run['wall_s']:.0f} s from the start to this report; cache: 0 entries at "
+    assert head + "the start (a cold run), 0 hit(s)" in report
     for section in sections.values():
         assert f"## {section.title}" in report and f"wall time {section.wall_s:.1f} s" in report
     assert not list(out.rglob("*.tmp*"))  # every file written whole (atomically)
