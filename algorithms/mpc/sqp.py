@@ -296,15 +296,32 @@ def sqp_mpc_builder(env, prior_params, opts, name: str = "nonlinear_mpc", adapti
     return build
 
 
-def _plan_margins(model: _Model, x_plan, u_plan):
-    """(H, ng) margins of the env's constraint rows at ``(x_{i+1}, u_i)`` along the plan (``tightening``)."""
+def _jacobians(model: _Model, x, u):
+    """``(A (H, nx, nx), B (H, nx, nu), f (H, nx))``: the model's Jacobians and values at the stages ``(x_i, u_i)``
+    (forward mode gives the values with the Jacobians)."""
+
+    def step(x_i, u_i):
+        value = model.step(x_i, u_i)
+        return value, value
+
+    (A, B), f = jax.vmap(jax.jacfwd(step, argnums=(0, 1), has_aux=True))(x, u)
+    return A, B, f
+
+
+def _needs_margins(model: _Model) -> bool:
+    return model.prediction is not None and model.setup.num_env_rows > 0
+
+
+def _plan_margins(model: _Model, x_plan, u_plan, lin=None):
+    """(H, ng) margins of the env's constraint rows at ``(x_{i+1}, u_i)`` along the plan (``tightening``); ``lin``:
+    the ``_jacobians`` at ``(x_plan[:-1], u_plan)`` when the caller has them."""
     s, prediction = model.setup, model.prediction
     dtype = s.u_eq.dtype
-    if prediction is None or s.num_env_rows == 0:
+    if not _needs_margins(model):
         return jnp.zeros((s.horizon, s.num_env_rows), dtype)
     from scg_algorithms.gp_mpc import tightening
 
-    A, B = jax.vmap(jax.jacfwd(model.step, argnums=(0, 1)))(x_plan[:-1], u_plan)
+    A, B, _ = _jacobians(model, x_plan[:-1], u_plan) if lin is None else lin
     var = jnp.maximum(jax.vmap(prediction.variance)(x_plan[:-1], u_plan), 0.0)
     sigmas = tightening.propagate_covariance_scan(A, B, prediction.K, var, prediction.sigma0)
     rows_x, rows_u = jax.vmap(jax.jacfwd(s.g_all, argnums=(0, 1)))(x_plan[1:], u_plan)
@@ -322,13 +339,12 @@ def _tightened_box(s: _Setup, margins):
     return jnp.where(empty, middle, low), jnp.where(empty, middle, high)
 
 
-def _linearize(model: _Model, x_bar, u_bar, row_margins, stage_box):
+def _linearize(model: _Model, x_bar, u_bar, row_margins, stage_box, lin=None):
     """The QP of the plan ``(x_bar (H + 1, nx), u_bar (H, nu))``, the general rows tightened by ``row_margins``
-    (H, m), the inputs in ``stage_box``."""
+    (H, m), the inputs in ``stage_box``; ``lin``: the ``_jacobians`` at ``(x_bar[:-1], u_bar)`` when known."""
     s = model.setup
     H, nx, nu, dtype = s.horizon, s.env.nx, s.env.nu, s.u_eq.dtype
-    A, B = jax.vmap(jax.jacfwd(model.step, argnums=(0, 1)))(x_bar[:-1], u_bar)
-    f = jax.vmap(model.step)(x_bar[:-1], u_bar)
+    A, B, f = _jacobians(model, x_bar[:-1], u_bar) if lin is None else lin
     c = f - jnp.einsum("kxy,ky->kx", A, x_bar[:-1]) - jnp.einsum("kxu,ku->kx", B, u_bar)
     if s.m:
         C, D = jax.vmap(jax.jacfwd(s.g_rows, argnums=(0, 1)))(x_bar[1:], u_bar)
@@ -353,27 +369,32 @@ def _merit(model: _Model, x, u, x0, window, row_margins):
     return J + s.opts.merit_weight * (defects + violation)
 
 
-def _iteration(model: _Model, x0, window, x_bar, u_bar, warm, full_step, margins):
-    """One SQP iteration: the QP about ``(x_bar, u_bar)``, then a step along it chosen by the merit."""
+def _iteration(model: _Model, x0, window, x_bar, u_bar, warm, full_step, margins, lin=None, line_search=True):
+    """One SQP iteration: the QP about ``(x_bar, u_bar)`` (``lin``: the model's ``_jacobians`` there, when known),
+    then a step along it chosen by the merit, or the full step where ``full_step``. ``line_search=False`` (static)
+    takes the full step without evaluating the merit, for callers that would discard it."""
     s = model.setup
     dtype = s.u_eq.dtype
     row_margins, stage_box = margins[:, s.keep], _tightened_box(s, margins)
-    qp = _linearize(model, x_bar, u_bar, row_margins, stage_box)
+    qp = _linearize(model, x_bar, u_bar, row_margins, stage_box, lin)
     qp = qp._replace(q=-jnp.einsum("kxy,ky->kx", s.Qs, window[1:]))
     sol = structured.solve(s.layout, qp, x0, warm, s.settings)
     ok = (sol.status == structured.CONVERGED) | (sol.status == structured.MAX_ITERATIONS)
     ok = ok & (sol.violation <= s.opts.fallback_tol) & jnp.all(jnp.isfinite(sol.u)) & jnp.all(jnp.isfinite(sol.x))
-    base = _merit(model, x_bar, u_bar, x0, window, row_margins)
-    fractions = 0.5 ** jnp.arange(LINE_SEARCH_STEPS, dtype=dtype)
+    if line_search:
+        base = _merit(model, x_bar, u_bar, x0, window, row_margins)
+        fractions = 0.5 ** jnp.arange(LINE_SEARCH_STEPS, dtype=dtype)
 
-    def trial(a):
-        return _merit(model, x_bar + a * (sol.x - x_bar), u_bar + a * (sol.u - u_bar), x0, window, row_margins)
+        def trial(a):
+            return _merit(model, x_bar + a * (sol.x - x_bar), u_bar + a * (sol.u - u_bar), x0, window, row_margins)
 
-    merits = jax.vmap(trial)(fractions)
-    # Round-off of the merit (float32: defects of 1e-7 m weighed by merit_weight) must not reject a step.
-    better = merits <= base + 8 * jnp.finfo(dtype).eps * jnp.abs(base)
-    a = jnp.where(jnp.any(better), fractions[jnp.argmax(better)], fractions[-1])
-    a = jnp.where(ok, jnp.where(full_step, 1.0, a), 0.0)
+        merits = jax.vmap(trial)(fractions)
+        # Round-off of the merit (float32: defects of 1e-7 m weighed by merit_weight) must not reject a step.
+        better = merits <= base + 8 * jnp.finfo(dtype).eps * jnp.abs(base)
+        a = jnp.where(jnp.any(better), fractions[jnp.argmax(better)], fractions[-1])
+        a = jnp.where(ok, jnp.where(full_step, 1.0, a), 0.0)
+    else:
+        a = jnp.where(ok, 1.0, 0.0).astype(dtype)
     x_new = x_bar + a * (sol.x - x_bar)
     u_new = jnp.clip(u_bar + a * (sol.u - u_bar), s.u_low, s.u_high)
     change = jnp.max(jnp.abs(u_new - u_bar))
@@ -427,8 +448,15 @@ def _act(model: _Model, ctrl_state: SQPState, obs, step, reference):
         structured.shift(s.layout, ctrl_state.warm, jnp.clip(moved, 1, H)),
         _reset(s).warm,
     )
-    cap = jnp.where(have_plan, 1, opts.sqp_max_iter) if rti else opts.sqp_max_iter
-    margins = _plan_margins(model, x_bar, u_bar)  # once per step, along the plan the first QP linearises
+    # The model's Jacobians along the shifted plan: the margins' (once per step) and SQP-RTI's linearisation.
+    lin = _jacobians(model, x_bar[:-1], u_bar) if (rti or _needs_margins(model)) else None
+    margins = _plan_margins(model, x_bar, u_bar, lin)
+    # SQP-RTI: one full step about the shifted plan for the copies that have one, taken before the loop and without
+    # the line search's merits, which it would discard (under vmap they would be computed for every copy); the loop
+    # then runs only for copies without a plan (an episode's first step), none once every copy has one.
+    cap = jnp.where(have_plan, 0, opts.sqp_max_iter) if rti else opts.sqp_max_iter
+    if rti:
+        rti_step = _iteration(model, x0, window, x_bar, u_bar, warm, True, margins, lin=lin, line_search=False)
 
     def cond(carry):
         *_, it, change, ok = carry
@@ -444,6 +472,13 @@ def _act(model: _Model, ctrl_state: SQPState, obs, step, reference):
     init = (x_bar, u_bar, warm, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.ones((), bool))
     init = (*init, jnp.zeros((), jnp.int32), jnp.asarray(jnp.inf, dtype), jnp.ones((), bool))
     x, u, warm, status, qp_it, first_ok, it, _, _ = lax.while_loop(cond, body, init)
+    if rti:
+        x_r, u_r, ok_r, sol_r, _ = rti_step
+        warm_r = jax.tree.map(lambda a, b: jnp.where(ok_r == 1, a, b), sol_r.warm, warm)
+        rti_out = (x_r, u_r, warm_r, sol_r.status, sol_r.iterations, ok_r == 1, jnp.ones((), jnp.int32))
+        x, u, warm, status, qp_it, first_ok, it = jax.tree.map(
+            lambda a, b: jnp.where(have_plan, a, b), rti_out, (x, u, warm, status, qp_it, first_ok, it)
+        )
     u_apply = jnp.clip(jnp.where(jnp.all(jnp.isfinite(u[0])), u[0], s.u_eq), s.u_low, s.u_high)
     x = jnp.where(jnp.isfinite(x), x, 0.0)
     new_state = SQPState(
