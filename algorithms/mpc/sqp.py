@@ -25,9 +25,10 @@ merit_weight``), or by the smallest when none does.
   ``sqp_max_iter`` iterations (a ``lax.while_loop``; under ``vmap`` the batch runs until its slowest copy stops).
 - ``solver="sqp_rti"``: one iteration per control step about the previous plan shifted by one step (its last
   input held, the last state propagated through ``f_d``), the real-time iteration of Diehl et al. (2005), with the
-  full step (no line search: a partial step is a weaker input, and the next step corrects the plan anyway).
-  Without a plan (the first step) it iterates as ``sqp`` does, from the measured state held and the equilibrium
-  input.
+  full step (no line search: a partial step is a weaker input, and the next step corrects the plan anyway). That
+  step runs before the loop, without the merit, on the model Jacobians the margins were computed with. Without a
+  plan (the first step) it iterates as ``sqp`` does in the loop, from the measured state held and the equilibrium
+  input; under ``vmap`` the loop runs no iteration once every copy has a plan.
 
 **A learned model** (GP-MPC, ``scg_algorithms.gp_mpc``): ``Prediction`` adds a model error's mean to ``f_d`` and
 tightens every env constraint row at every stage by a margin from its variance, propagated along the plan about to be
