@@ -112,3 +112,34 @@ def test_bad_solver_options_name_the_field(cartpole_episodes, options, message):
     env, params = cartpole_episodes
     with pytest.raises(ValueError, match=message):
         make_nonlinear_mpc(env, params, options)
+
+
+def test_the_shifted_plan_is_the_old_one_advanced_with_its_tail_stepped_by_the_model():
+    # sqp._shifted on a linear model x+ = 2 x + u, horizon 5, against the plan written out by hand: for a plan made
+    # `moved` steps ago, x[i] = x_plan[i + moved] where that exists, x[0] the measured state, and the last `moved`
+    # states stepped by the model under the held last input; vmapped over copies with different `moved`.
+    import types
+
+    from scg_algorithms.mpc import sqp
+
+    H = 5
+    model = types.SimpleNamespace(setup=types.SimpleNamespace(horizon=H), step=lambda x, u: 2.0 * x + u)
+    x_plan = np.arange(H + 1, dtype=np.float32)[:, None] * np.float32(10.0)  # (6, 1): 0, 10, ..., 50
+    u_plan = np.arange(1, H + 1, dtype=np.float32)[:, None]  # (5, 1): 1, ..., 5
+    state = types.SimpleNamespace(x_plan=jnp.asarray(x_plan), u_plan=jnp.asarray(u_plan))
+    x0 = jnp.asarray([7.0], jnp.float32)
+
+    def expected(moved):
+        u = [u_plan[min(i + moved, H - 1), 0] for i in range(H)]
+        x = [7.0] + [x_plan[i + moved, 0] if i + moved <= H else None for i in range(1, H + 1)]
+        for k in range(H - moved, H):
+            x[k + 1] = 2.0 * x[k] + u[k]
+        return np.asarray(x)[:, None], np.asarray(u)[:, None]
+
+    moves = jnp.asarray([1, 3, 5], jnp.int32)
+    x, u = jax.jit(jax.vmap(lambda m: sqp._shifted(model, state, x0, m)))(moves)
+    for i, moved in enumerate([1, 3, 5]):
+        x_ref, u_ref = expected(moved)
+        np.testing.assert_array_equal(np.asarray(x[i]), x_ref)
+        np.testing.assert_array_equal(np.asarray(u[i]), u_ref)
+    np.testing.assert_array_equal(np.asarray(x[0])[:, 0], [7.0, 20.0, 30.0, 40.0, 50.0, 105.0])  # 2 * 50 + 5

@@ -407,14 +407,17 @@ def _shifted(model: _Model, state: SQPState, x0, moved):
     H = model.setup.horizon
     index = jnp.minimum(jnp.arange(H) + moved, H - 1)
     u = state.u_plan[index]
-    x = state.x_plan[jnp.minimum(jnp.arange(H + 1) + moved, H)]
+    x = state.x_plan[jnp.minimum(jnp.arange(H + 1) + moved, H)].at[0].set(x0)
 
-    def extend(x_prev, k):
-        x_next = jnp.where(k + moved >= H, model.step(x_prev, u[k]), x[k + 1])
-        return x_next, x_next
+    # The last `moved` states, one model step each: a loop of `moved` steps (under vmap, of the batch's largest
+    # `moved`, one in a closed loop) rather than a scan over the horizon that evaluates the model at every stage.
+    def extend(carry):
+        j, x = carry
+        k = H - moved + j
+        return j + 1, x.at[k + 1].set(model.step(x[k], u[k]))
 
-    _, rest = lax.scan(extend, x0, jnp.arange(H))
-    return jnp.concatenate([x0[None], rest], axis=0), u
+    _, x = lax.while_loop(lambda carry: carry[0] < moved, extend, (jnp.zeros_like(moved), x))
+    return x, u
 
 
 def _reset(s: _Setup) -> SQPState:
