@@ -184,10 +184,17 @@ def test_piped_eval_ctrl_c_after_the_first_progress_line_exits_130_with_one_line
     out = tmp_path / "e.json"
     args = ["eval", "--system", "cartpole", "--controller", "lqr", "--episodes", "4",
             "--progress-interval", str(INTERVAL), "--out", str(out)]  # fmt: skip
-    run = _Piped(args, tmp_path)
-    run.wait_for(lambda lines: len(lines) >= 1)
-    run.process.send_signal(signal.SIGINT)
-    status, lines, err = run.finish()
+    for _ in range(3):
+        run = _Piped(args, tmp_path)
+        run.wait_for(lambda lines: len(lines) >= 1)
+        run.process.send_signal(signal.SIGINT)
+        status, lines, err = run.finish()
+        if not (status == 0 and out.is_file()):
+            break
+        # The whole eval takes about 1.5 s: on a loaded machine it can end, its files written, before the signal is
+        # sent. That is not the case under test, so run it again (a signal that is ignored fails all three runs).
+        for path in tmp_path.iterdir():
+            path.unlink()
     texts = [text for _, text in lines]
     assert status == 130 and err == "" and "Traceback" not in " ".join(texts), err
     assert texts[0].startswith("eval lqr: elapsed 0:0") and texts[-1] == "interrupted; nothing written"
