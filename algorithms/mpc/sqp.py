@@ -370,10 +370,10 @@ def _merit(model: _Model, x, u, x0, window, row_margins):
     return J + s.opts.merit_weight * (defects + violation)
 
 
-def _iteration(model: _Model, x0, window, x_bar, u_bar, warm, full_step, margins, lin=None, line_search=True):
+def _iteration(model: _Model, x0, window, x_bar, u_bar, warm, margins, lin=None, full_step: bool = False):
     """One SQP iteration: the QP about ``(x_bar, u_bar)`` (``lin``: the model's ``_jacobians`` there, when known),
-    then a step along it chosen by the merit, or the full step where ``full_step``. ``line_search=False`` (static)
-    takes the full step without evaluating the merit, for callers that would discard it."""
+    then a step along it chosen by the merit, or (``full_step``, static: SQP-RTI) the full step, the merit not
+    evaluated."""
     s = model.setup
     dtype = s.u_eq.dtype
     row_margins, stage_box = margins[:, s.keep], _tightened_box(s, margins)
@@ -382,7 +382,7 @@ def _iteration(model: _Model, x0, window, x_bar, u_bar, warm, full_step, margins
     sol = structured.solve(s.layout, qp, x0, warm, s.settings)
     ok = (sol.status == structured.CONVERGED) | (sol.status == structured.MAX_ITERATIONS)
     ok = ok & (sol.violation <= s.opts.fallback_tol) & jnp.all(jnp.isfinite(sol.u)) & jnp.all(jnp.isfinite(sol.x))
-    if line_search:
+    if not full_step:
         base = _merit(model, x_bar, u_bar, x0, window, row_margins)
         fractions = 0.5 ** jnp.arange(LINE_SEARCH_STEPS, dtype=dtype)
 
@@ -393,7 +393,7 @@ def _iteration(model: _Model, x0, window, x_bar, u_bar, warm, full_step, margins
         # Round-off of the merit (float32: defects of 1e-7 m weighed by merit_weight) must not reject a step.
         better = merits <= base + 8 * jnp.finfo(dtype).eps * jnp.abs(base)
         a = jnp.where(jnp.any(better), fractions[jnp.argmax(better)], fractions[-1])
-        a = jnp.where(ok, jnp.where(full_step, 1.0, a), 0.0)
+        a = jnp.where(ok, a, 0.0)
     else:
         a = jnp.where(ok, 1.0, 0.0).astype(dtype)
     x_new = x_bar + a * (sol.x - x_bar)
@@ -460,7 +460,9 @@ def _act(model: _Model, ctrl_state: SQPState, obs, step, reference):
     # then runs only for copies without a plan (an episode's first step), none once every copy has one.
     cap = jnp.where(have_plan, 0, opts.sqp_max_iter) if rti else opts.sqp_max_iter
     if rti:
-        rti_step = _iteration(model, x0, window, x_bar, u_bar, warm, True, margins, lin=lin, line_search=False)
+        x_r, u_r, ok_r, sol_r, _ = _iteration(model, x0, window, x_bar, u_bar, warm, margins, lin, full_step=True)
+        warm_r = jax.tree.map(lambda a, b: jnp.where(ok_r == 1, a, b), sol_r.warm, warm)
+        rti_out = (x_r, u_r, warm_r, sol_r.status, sol_r.iterations, ok_r == 1, jnp.ones((), jnp.int32))
 
     def cond(carry):
         *_, it, change, ok = carry
@@ -468,7 +470,7 @@ def _act(model: _Model, ctrl_state: SQPState, obs, step, reference):
 
     def body(carry):
         x, u, warm, status, qp_it, first_ok, it, _, _ = carry
-        x, u, ok, sol, change = _iteration(model, x0, window, x, u, warm, rti & have_plan, margins)
+        x, u, ok, sol, change = _iteration(model, x0, window, x, u, warm, margins)
         first_ok = jnp.where(it == 0, ok == 1, first_ok)
         warm = jax.tree.map(lambda a, b: jnp.where(ok == 1, a, b), sol.warm, warm)
         return x, u, warm, sol.status, qp_it + sol.iterations, first_ok, it + 1, change, ok == 1
@@ -477,9 +479,6 @@ def _act(model: _Model, ctrl_state: SQPState, obs, step, reference):
     init = (*init, jnp.zeros((), jnp.int32), jnp.asarray(jnp.inf, dtype), jnp.ones((), bool))
     x, u, warm, status, qp_it, first_ok, it, _, _ = lax.while_loop(cond, body, init)
     if rti:
-        x_r, u_r, ok_r, sol_r, _ = rti_step
-        warm_r = jax.tree.map(lambda a, b: jnp.where(ok_r == 1, a, b), sol_r.warm, warm)
-        rti_out = (x_r, u_r, warm_r, sol_r.status, sol_r.iterations, ok_r == 1, jnp.ones((), jnp.int32))
         x, u, warm, status, qp_it, first_ok, it = jax.tree.map(
             lambda a, b: jnp.where(have_plan, a, b), rti_out, (x, u, warm, status, qp_it, first_ok, it)
         )
