@@ -187,3 +187,21 @@ def test_sac_grid_section_ranks_by_seeds_reached_then_median_time(bench):
     # All three seeds first, then two of three (median 6 s), then one of three, whatever its fastest seed.
     assert [line.split(" | ")[0] for line in table] == ["| 64", "| 16", "| 256"]
     assert "| 3 / 3 | 9.0 |" in table[0] and "30.0* s (20 k)" in table[1]
+
+
+def test_the_threshold_is_a_factor_of_lqrs_rmse_or_a_given_target_and_the_labels_say_which(bench, monkeypatch):
+    class Fake:
+        summary = {"rmse": 0.84}
+
+    monkeypatch.setattr(bench, "make_lqr", lambda env, params: None)
+    monkeypatch.setattr(bench, "evaluate", lambda *args, **kwargs: Fake())
+    relative = bench.lqr_threshold(None, None, None, 4, 1.5)
+    assert relative == {"lqr_rmse": 0.84, "threshold_rmse": pytest.approx(1.26), "rmse_factor": 1.5}
+    assert bench.threshold_label(relative) == "1.5x LQR's RMSE (1.2600; LQR 0.8400)"
+    target = bench.lqr_threshold(None, None, None, 4, 1.5, target=bench.ORIGINAL_PPO_RMSE)
+    assert target == {"lqr_rmse": 0.84, "threshold_rmse": 0.619, "rmse_factor": None}
+    assert bench.threshold_label(target) == "RMSE 0.619 (LQR 0.8400)"
+    record = {**bench.run_record("train"), "overrides": [], "time_to_threshold": {**target, "ours": {}, "brax": {}}}
+    assert "Time to RMSE 0.619 (LQR 0.8400), no crash" in bench.section(record)
+    with pytest.raises(SystemExit):
+        bench.main(["--target-rmse", "-1"])

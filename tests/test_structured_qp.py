@@ -110,7 +110,7 @@ def _qpoases(layout, qp, x0):
         opti.subject_to(opti.bounded(qp.u_low[k], U[:, k], qp.u_high[k]))
         for j, i in enumerate(layout.x_rows):
             opti.subject_to(opti.bounded(qp.x_low[k, j], X[i, k + 1], qp.x_high[k, j]))
-        if layout.num_rows:
+        if layout.num_rows and (np.any(qp.C[k]) or np.any(qp.D[k])):  # zero rows (infinite bounds) left out
             opti.subject_to(qp.C[k] @ X[:, k + 1] + qp.D[k] @ U[:, k] <= qp.row_high[k])
         cost += 0.5 * cs.bilin(qp.Q[k], X[:, k + 1]) + cs.dot(cs.DM(qp.q[k]), X[:, k + 1])
         cost += 0.5 * cs.bilin(qp.R[k], U[:, k]) + cs.dot(cs.DM(qp.r[k]), U[:, k])
@@ -275,3 +275,70 @@ def test_bad_layouts_and_settings_name_the_field():
     qp = _qp(layout, *DOUBLE_INTEGRATOR, np.eye(2), np.zeros((1, 1)))
     with pytest.raises(ValueError, match=r"template\.R must be positive definite"):
         S.prepare(layout, qp)
+
+
+def _terminal_row_problem(soft: bool):
+    """The double integrator, horizon 20, pre-stabilised by its LQR gain, with |u| <= 3, a velocity box |v| <= 0.4
+    (soft at an exact-penalty price of 1,000 per m/s when ``soft``) and one general row at the last stage only,
+    position <= 0.2 m (zero rows with infinite bounds at the others, as the MPSC's terminal rows), and a weak cost
+    that leaves the cart short of it: the terminal row binds."""
+    A, B = DOUBLE_INTEGRATOR
+    Q, R = np.diag([0.01, 0.01]), np.array([[1.0]])
+    P = scipy.linalg.solve_discrete_are(A, B, Q, R)
+    K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+    layout = S.Layout(
+        horizon=20, nx=2, nu=1, x_rows=(1,), num_rows=1, soft_x=(soft,), soft_rows=(False,), l1=1e3 if soft else 0.0
+    )
+    qp = _qp(layout, A, B, Q, R, P=P, K=K, u_box=3.0, x_box=np.array([0.4]))
+    C = np.zeros((20, 1, 2))
+    C[-1, 0, 0] = 1.0
+    row_high = np.full((20, 1), np.inf)
+    row_high[-1] = 0.2
+    return layout, qp._replace(C=C, row_high=row_high)
+
+
+TERMINAL_STARTS = np.array([[0.7, 0.3], [0.6, -0.2], [0.5, 0.4], [0.8, 0.0], [0.45, 0.1], [0.75, -0.35]])
+
+
+def test_rows_zero_at_every_stage_but_one_are_left_out_of_the_prepared_admm_and_the_plan_is_qpoases():
+    layout, qp = _terminal_row_problem(soft=False)
+    bounds = tuple(qp[8:12]) + tuple(qp[14:])
+    with jax.enable_x64(True):
+        settings = S.Settings(max_iterations=4000, eps_abs=1e-10, eps_rel=1e-10)
+        prepared = S.prepare(layout, qp, settings)
+        # 20 input rows, 20 velocity rows and the terminal row: the 19 zero general rows are left out.
+        assert layout.num_dense == 60 and prepared.keep.shape == (41,) and prepared.GT.shape == (41, 20)
+        run = jax.vmap(_solve_prepared, in_axes=(None, None, 0, None, None, None, None, None, None))
+        sols = run(layout, prepared, jnp.asarray(TERMINAL_STARTS), qp.c, qp.q, qp.r, bounds, None, settings)
+        per_copy = jax.vmap(lambda x: _solve(layout, qp, x, None, settings))(jnp.asarray(TERMINAL_STARTS))
+    np.testing.assert_array_equal(np.asarray(sols.status), S.CONVERGED)
+    for i, x0 in enumerate(TERMINAL_STARTS):
+        u_ref, success = _qpoases(layout, qp, x0)
+        assert success
+        np.testing.assert_allclose(sols.u[i, 0], u_ref, atol=1e-6)
+    np.testing.assert_allclose(sols.u, per_copy.u, atol=1e-6)  # the per-copy path holds every row
+    np.testing.assert_allclose(np.asarray(sols.x[:, -1, 0]), 0.2, atol=1e-6)  # the terminal row binds in every one
+    assert np.all(np.asarray(sols.multipliers)[:, :-1, 2] == 0.0)  # the left-out rows: no force, value 0
+    assert np.all(np.asarray(sols.warm.values).reshape(6, 20, 3)[:, :-1, 2] == 0.0)
+
+
+def test_the_polish_of_soft_rows_gives_the_exact_solution_where_no_soft_row_is_violated():
+    # The velocity box soft at an exact penalty (1,000 per m/s, far above its multipliers): where a plan holds it,
+    # the soft QP's solution is the hard one (qpOASES). 30 ADMM iterations leave the plan 1e-4 N or more off; six
+    # polish rounds that hold the soft rows as well reach qpOASES to 1e-8 N, the hard rows alone do not.
+    layout, qp = _terminal_row_problem(soft=True)
+    bounds = tuple(qp[8:12]) + tuple(qp[14:])
+    errors = {}
+    with jax.enable_x64(True):
+        for polish_soft_rows in (False, True):
+            settings = S.Settings(max_iterations=30, polish_rounds=6, polish_soft_rows=polish_soft_rows)
+            prepared = S.prepare(layout, qp, settings)
+            run = jax.vmap(_solve_prepared, in_axes=(None, None, 0, None, None, None, None, None, None))
+            sols = run(layout, prepared, jnp.asarray(TERMINAL_STARTS), qp.c, qp.q, qp.r, bounds, None, settings)
+            hard = _terminal_row_problem(soft=False)[1]
+            u_ref = np.concatenate([_qpoases(layout, hard, x0)[0] for x0 in TERMINAL_STARTS])
+            errors[polish_soft_rows] = np.abs(np.asarray(sols.u[:, 0, 0]) - u_ref).max()
+            if polish_soft_rows:
+                np.testing.assert_array_equal(np.asarray(sols.status), S.CONVERGED)
+                assert np.all(np.asarray(sols.slack) == 0.0)
+    assert errors[True] <= 1e-8 and errors[False] >= 1e-4, errors

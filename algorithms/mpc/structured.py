@@ -43,7 +43,10 @@ the latest ``v~``. Two ways to apply the inverse:
   ``(H + t G^T G)^-1 = T diag(1 / (lam + t)) T^T`` for *every* ``t``. In ``xi = T^-1 v`` an iteration is
   ``xi~ = ((G T)^T (t s - y) - T^T g) / (lam + t)``, ``s~ = (G T) xi~``: two products with one matrix shared by
   the batch (a GEMM under ``vmap``), and ``t`` adapts per copy at no cost. With ``adaptive_rho=False`` the two
-  products fold into one ``(p, p)`` matrix for the initial ``t``.
+  products fold into one ``(p, p)`` matrix for the initial ``t`` where that is cheaper (``p <= 2 n``: ``p^2``
+  multiplications against ``2 p n``). Rows that are zero for the whole family (a general row imposed at one stage
+  only, with zero ``C``, ``D`` at the others, as the MPSC's terminal rows) are left out of the ADMM: their value
+  is 0 whatever ``v``, so it runs on the ``k`` other rows (the MPSC's 275 rows, 83 of them not zero).
 - ``solve`` (matrices per copy, e.g. the QPs of SQP and SQP-RTI): condenses and factorises per copy (Cholesky of
   ``H + t G^T G``, kept as ``(H + t G^T G)^-1 [G^T, g]``), refactorised when ``t`` has moved by more than
   ``Settings.refactor_ratio``.
@@ -207,6 +210,10 @@ class Settings:
         polish_tol: the largest violation of a hard row (in half-widths of its interval) and of complementarity a
             polished plan may have to be accepted (``None``: the square root of the dtype's resolution, 3e-4 in
             float32, 1.5e-8 in float64).
+        polish_soft_rows: the polish also holds the soft rows at their bounds where it finds them there, and is
+            accepted only if their multipliers stay within the violation's price (per-stage slack, ``l2 = 0``: an
+            exact penalty): the soft problem's exact solution wherever no soft row is violated at it (a plan exists),
+            the ADMM's where one is. ``False``: the soft rows keep the ADMM's multipliers (and its accuracy).
     """
 
     max_iterations: int = 200
@@ -223,6 +230,7 @@ class Settings:
     refactor_ratio: float = 5.0
     polish_rounds: int = 3
     polish_tol: float | None = None
+    polish_soft_rows: bool = False
 
     def __post_init__(self):
         if self.max_iterations < 1 or self.check_every < 1:
@@ -446,15 +454,24 @@ def _shared_prox(layout: Layout, data: _Scaled, v, t, l1, l2):
     return projected.reshape(N, R).at[:, soft].set(S).reshape(-1)
 
 
-def _projection(layout: Layout, data: _Scaled):
-    """``project(v, t)``: the ADMM's prox for this layout (static choice: a clip when no row is soft)."""
+def _soft_mask(layout: Layout, keep=None):
+    """(p,) 1.0 for the soft rows, 0.0 for the hard ones, stage-major; with ``keep``, of those rows only."""
+    mask = np.tile(np.asarray(layout.soft, float), layout.horizon)
+    return mask if keep is None else jnp.asarray(mask)[keep]
+
+
+def _projection(layout: Layout, data: _Scaled, keep=None):
+    """``project(v, t)``: the ADMM's prox for this layout (static choice: a clip when no row is soft); ``keep``: the
+    rows ``data`` holds, when not all of them (per-stage slack only)."""
     if not any(layout.soft):
         return lambda v, t: jnp.clip(v, data.lo, data.hi)
     l1 = layout.l1 / data.scale  # objective units per problem unit of violation
     l2 = layout.l2 / data.scale
     if layout.slack == "shared":
+        if keep is not None:
+            raise ValueError("_projection: shared slacks need every row of the horizon")
         return lambda v, t: _shared_prox(layout, data, v, t, l1, l2)
-    mask = np.tile(np.asarray(layout.soft, float), layout.horizon)
+    mask = _soft_mask(layout, keep)
     l1_rows, l2_rows = l1 * mask * data.norms, l2 * mask * data.norms**2  # per scaled unit
     hard = mask == 0
 
@@ -504,13 +521,13 @@ class _Result(NamedTuple):
     violation: Any  # the largest violation of a hard row by the last v-update (problem units)
 
 
-def _admm(layout: Layout, ops: _Operators, data: _Scaled, s0, y0, t0, factor, settings: Settings) -> _Result:
-    """Run the ADMM on one copy from ``(s0, y0, t0)`` (scaled rows)."""
+def _admm(layout: Layout, ops: _Operators, data: _Scaled, s0, y0, t0, factor, settings: Settings, keep=None) -> _Result:
+    """Run the ADMM on one copy from ``(s0, y0, t0)`` (scaled rows; ``keep``: the rows they hold, when not all)."""
     dtype = s0.dtype
     alpha = settings.alpha
-    hard = jnp.asarray(~np.tile(np.asarray(layout.soft, bool), layout.horizon))
+    hard = jnp.asarray(_soft_mask(layout, keep)) == 0
     tiny = jnp.finfo(dtype).tiny
-    project = _projection(layout, data)
+    project = _projection(layout, data, keep)
 
     def iterate(s, y, t, factor):
         primal, s_tilde = ops.update(s, y, t, factor)
@@ -587,26 +604,32 @@ class _PolishOps(NamedTuple):
     correct: Any
 
 
-def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, settings: Settings) -> _Result:
+def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, settings: Settings, keep=None) -> _Result:
     """Refine the ADMM's plan by a primal-dual active-set method on the hard rows (OSQP's polish, iterated).
 
-    The soft rows keep the ADMM's multipliers as fixed forces. Each round solves the equality-constrained QP of the
-    current active set (the rows at a bound whose multiplier pushes outwards, at most ``n`` of them, gathered into
-    an ``(n, n)`` Schur system: one small Cholesky per copy and round) and updates the set by the primal-dual rule
-    ``y_i + (s_i - bound_i) > 0`` (Hintermueller et al. 2002). The result replaces the ADMM's, with status
-    ``CONVERGED``, only if every hard row holds within ``polish_tol`` (relative to its half-width) and no active
-    multiplier has the wrong sign by more than ``polish_tol``; otherwise the ADMM's plan stands. Near the solution
-    this converges in one or two rounds where the ADMM needs thousands of iterations (degenerate active sets along
-    a state bound).
+    The soft rows keep the ADMM's multipliers as fixed forces (with ``Settings.polish_soft_rows``, they take part
+    as hard rows, and the result is accepted only if their multipliers stay within the violation's price). Each
+    round solves the equality-constrained QP of the current active set (the rows at a bound whose multiplier pushes
+    outwards, at most ``n`` of them, gathered into an ``(n, n)`` Schur system: one small Cholesky per copy and
+    round) and updates the set by the primal-dual rule ``y_i + (s_i - bound_i) > 0`` (Hintermueller et al. 2002).
+    The result replaces the ADMM's, with status ``CONVERGED``, only if every hard row holds within ``polish_tol``
+    (relative to its half-width) and no active multiplier has the wrong sign by more than ``polish_tol``; otherwise
+    the ADMM's plan stands. Near the solution this converges in one or two rounds where the ADMM needs thousands of
+    iterations (degenerate active sets along a state bound).
     """
-    N, R, n = layout.horizon, layout.stage_rows, layout.num_decisions
+    n, p = layout.num_decisions, data.lo.shape[0]  # p: the rows data holds (keep: the kept rows)
     dtype = result.s.dtype
-    hard = jnp.asarray(~np.tile(np.asarray(layout.soft, bool), N))
+    soft = jnp.asarray(_soft_mask(layout, keep)) > 0
+    # With polish_soft_rows (exact penalty per stage), the soft rows join the active set, their multipliers capped
+    # by the price of a unit of violation (per scaled unit, as in _projection).
+    price = jnp.where(soft, layout.l1 / data.scale * data.norms, jnp.inf)
+    exact_soft = settings.polish_soft_rows and layout.slack == "stage" and layout.l2 == 0.0
+    hard = jnp.ones(p, bool) if exact_soft else ~soft
     lo, hi = data.lo, data.hi
     y_soft = jnp.where(hard, 0.0, result.y)
     primal_free, s_free = ops.free(y_soft)
     tol = float(np.sqrt(np.finfo(dtype).eps)) if settings.polish_tol is None else settings.polish_tol
-    k = min(n, N * R)
+    k = min(n, p)
 
     def active_sets(s, y):
         upper = hard & jnp.isfinite(hi) & (y + (s - hi) > 0)
@@ -620,20 +643,21 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
         # A multiplier pushes only at its own bound, with the right sign.
         complementary = ~jnp.any(hard & (((y > tol) & ~at_high) | ((y < -tol) & ~at_low)))
         finite = jnp.all(jnp.isfinite(s)) & jnp.all(jnp.isfinite(y)) & jnp.all(jnp.isfinite(primal))
-        return (jnp.max(violation, initial=0.0) <= tol) & complementary & finite
+        priced = jnp.all(jnp.abs(y) <= price * (1.0 + tol))  # a soft row's force within its price
+        return (jnp.max(violation, initial=0.0) <= tol) & complementary & finite & priced
 
     def round_(carry, _):
         upper, lower, best, accepted = carry
         active = upper | lower
         # The active rows first (by index), then the others as padding; at most k of them take part.
-        index = jnp.argsort(jnp.where(active, 0, 1) * (N * R) + jnp.arange(N * R))[:k]
+        index = jnp.argsort(jnp.where(active, 0, 1) * p + jnp.arange(p))[:k]
         target = jnp.where(upper, hi, lo)[index]
         mask = active[index].astype(dtype)
         # The rows not in the set have lambda = 0: identity rows decouple them.
         M = mask[:, None] * ops.schur(index) * mask[None, :] + jnp.diag(1.0 - mask)
         lam = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(M), True), mask * (s_free[index] - target)) * mask
         primal, s = ops.correct(primal_free, index, lam)
-        y = jnp.zeros(N * R, dtype).at[index].set(lam)
+        y = jnp.zeros(p, dtype).at[index].set(lam)
         good = (jnp.sum(active) <= k) & acceptable(primal, s, y) & ~accepted
         best = jax.tree.map(lambda a, b: jnp.where(good, a, b), (primal, s, y), best)
         return (*active_sets(s, y), best, accepted | good), None
@@ -642,10 +666,10 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
     init = (upper, lower, (result.primal, result.s, jnp.zeros_like(result.y)), jnp.zeros((), bool))
     (_, _, (primal, s, y), ok), _ = lax.scan(round_, init, None, length=settings.polish_rounds)
     ok = ok & (result.status != NUMERICAL)
-    # The hard rows at their polished values (within tol of their bounds), the soft rows at the ADMM's.
+    # The polished rows at their polished values (within tol of their bounds), the others at the ADMM's.
     s_final = jnp.where(hard, jnp.clip(s, lo, hi), result.s)
     y_final = jnp.where(hard, y, result.y)
-    violation = _norm(jnp.where(hard, jnp.maximum(jnp.maximum(s - hi, lo - s), 0.0) * data.norms, 0.0))
+    violation = _norm(jnp.where(~soft, jnp.maximum(jnp.maximum(s - hi, lo - s), 0.0) * data.norms, 0.0))
     pick = lambda a, b: jnp.where(ok, a, b)  # noqa: E731
     return result._replace(
         primal=pick(primal, result.primal),
@@ -795,11 +819,14 @@ class Prepared(NamedTuple):
     With ``theta = [x_init; vec c]`` (nx + N nx) and ``vectors = [theta; vec q; vec r]``:
 
     Attributes:
-        GT: (p, n) ``G T`` (the scaled rows in eigen-coordinates). lam: (n,) generalised eigenvalues. T: (n, n).
-        rho: the initial step size (``settings.rho`` or ``lam.min()``). fixed: ``None`` unless
-            ``adaptive_rho=False``: ``GT diag(1 / (lam + rho)) GT^T`` (p, p).
+        GT: (k, n) ``G T`` of the kept rows (the scaled rows in eigen-coordinates). lam: (n,) generalised
+            eigenvalues. T: (n, n).
+        rho: the initial step size (``settings.rho`` or ``lam.min()``, times ``settings.rho_scale``).
+        keep: (k,) the rows that are not zero for the whole family (a nonzero row of ``G`` or of the offsets; all
+            rows with shared slacks); the others' values are 0 at every ``v`` and the ADMM leaves them out. fixed:
+            ``None`` unless ``adaptive_rho=False`` and ``k <= 2 n``: ``GT diag(1 / (lam + rho)) GT^T`` (k, k).
         h_map: (n, len(vectors)): ``T^T g / scale = h_map vectors``.
-        off_map: (p, len(theta)): the rows' values at ``v = 0``. ex_map: (N nx, len(theta)): the states there.
+        off_map: (k, len(theta)): the kept rows' values at ``v = 0``. ex_map: (N nx, len(theta)): the states there.
         Ex: (N, nx, n). norms: (p,). scale: scalar.
     """
 
@@ -807,6 +834,7 @@ class Prepared(NamedTuple):
     lam: Any
     T: Any
     rho: Any
+    keep: Any
     fixed: Any
     h_map: Any
     off_map: Any
@@ -882,16 +910,22 @@ def prepare(layout: Layout, template: HorizonQP, settings: Settings = Settings()
     T = L_inv.T @ U
     GT = Gs @ T
     rho = (float(lam.min()) if settings.rho is None else settings.rho) * settings.rho_scale
-    fixed = None if settings.adaptive_rho else (GT / (lam + rho)) @ GT.T
+    # Shared slacks price each row over the whole horizon: every row takes part there.
+    nonzero = np.any(Gs != 0, axis=1) | np.any(off_map != 0, axis=1) | (layout.slack == "shared")
+    keep = np.flatnonzero(nonzero)
+    GT = GT[keep]
+    fold = not settings.adaptive_rho and keep.size <= 2 * layout.num_decisions
+    fixed = (GT / (lam + rho)) @ GT.T if fold else None
     cast = lambda a: None if a is None else jnp.asarray(a, dtype)  # noqa: E731
     return Prepared(
         GT=cast(GT),
         lam=cast(lam),
         T=cast(T),
         rho=cast(rho),
+        keep=jnp.asarray(keep, jnp.int32),
         fixed=cast(fixed),
         h_map=cast(T.T @ g_map / scale),
-        off_map=cast(off_map),
+        off_map=cast(off_map[keep]),
         ex_map=cast(ex_map),
         Ex=cast(Ex),
         norms=cast(norms),
@@ -935,7 +969,20 @@ def solve_prepared(
     theta = jnp.concatenate([x_init, flat(c)])
     h = pr.h_map @ jnp.concatenate([theta, flat(q), flat(r)])  # T^T g / scale
     bounds = tuple(jnp.asarray(b, dtype) for b in bounds)
-    data = _scaled(layout, pr.off_map @ theta, bounds, pr.norms, pr.scale)
+    # The ADMM and the polish hold the kept rows only (a static count); the others' values are 0 at every v.
+    if pr.keep.shape[0] == layout.num_dense:
+        keep, kept, spread = None, lambda a: a, lambda a: a
+    else:
+        keep = pr.keep
+
+        def kept(a):
+            return a[keep]
+
+        def spread(a):
+            return jnp.zeros(layout.num_dense, dtype).at[keep].set(a)
+
+    full = _scaled(layout, spread(pr.off_map @ theta), bounds, pr.norms, pr.scale)
+    data = full if keep is None else _Scaled(*(kept(a) for a in full[:4]), full.scale)
 
     if pr.fixed is None:
 
@@ -950,7 +997,7 @@ def solve_prepared(
         shift_h = pr.GT @ (h / (pr.lam + pr.rho))
 
         def update(s, y, t, factor):
-            # One (p, p) product per iteration; xi~ = (GT^T (t s - y) - h) / (lam + rho) only at the checks.
+            # One (k, k) product per iteration; xi~ = (GT^T (t s - y) - h) / (lam + rho) only at the checks.
             return t * s - y, pr.fixed @ (t * s - y) - shift_h
 
         def to_xi(primal):
@@ -963,10 +1010,10 @@ def solve_prepared(
         return pr.lam * xi + h + GTy, (pr.lam * xi, GTy, h)
 
     ops = _Operators(update, lambda t, factor: (factor, t), dual, lambda y: pr.GT.T @ y, lambda p: pr.T @ to_xi(p))
-    s0, y0, t0 = _start(data, warm, settings, pr.rho if settings.rho is None else settings.rho)
-    if pr.fixed is not None:  # the folded products are those of the prepared step size
+    s0, y0, t0 = _start(full, warm, settings, pr.rho if settings.rho is None else settings.rho)
+    if not settings.adaptive_rho:  # the prepared step size throughout (the folded products are for it)
         t0 = pr.rho
-    result = _admm(layout, ops, data, s0, y0, t0, (), settings)
+    result = _admm(layout, ops, data, kept(s0), kept(y0), t0, (), settings, keep)
     if settings.polish_rounds:
         # In the coordinates xi (T^T H T = diag(lam)); on the folded path the primal becomes xi here.
         result = result._replace(primal=to_xi(result.primal))
@@ -983,12 +1030,13 @@ def solve_prepared(
             xi = xi - (pr.GT[index].T @ lam) / pr.lam
             return xi, pr.GT @ xi
 
-        result = _polish(layout, _PolishOps(free, schur, correct), data, result, settings)
+        result = _polish(layout, _PolishOps(free, schur, correct), data, result, settings, keep)
         v = pr.T @ result.primal
     else:
         v = ops.to_v(result.primal)
+    result = result._replace(s=spread(result.s), y=spread(result.y))
     ex = (pr.ex_map @ theta).reshape(N, nx)
-    return _finish(layout, data, (pr.Ex, ex), x_init, result, v)
+    return _finish(layout, full, (pr.Ex, ex), x_init, result, v)
 
 
 # --------------------------------------------------------------------------------------------- warm start

@@ -142,6 +142,21 @@ class Options:
     structured_tol: float = option(1e-5, "structured: absolute and relative residual tolerance of the scaled QP")
     structured_check_every: int = option(10, "structured: iterations between residual checks and step-size updates")
     structured_polish_rounds: int = option(3, "structured: active-set polish rounds after the ADMM (0: none)")
+    structured_polish_soft_rows: bool = option(
+        False,
+        "structured: the polish holds the soft state rows too, so that a certified plan is the QP's exact solution "
+        "(the ADMM's otherwise, to its tolerance; with it, 6 polish rounds: see docs/safety-filters.md)",
+    )
+    structured_adaptive_rho: bool = option(
+        True,
+        "structured: adapt the step size at the checks; false: keep the prepared one throughout, whose products are "
+        "folded once (the fastest iteration, for fixed iteration counts with structured_tol 0)",
+    )
+    structured_rho_scale: float = option(
+        1.0,
+        "structured: factor on the prepared step size, the smallest generalised eigenvalue of the condensed QP "
+        "(with structured_adaptive_rho false: the step size throughout)",
+    )
     terminal_rows: int = option(
         8,
         "structured: tail rows imposed on the plan's last state in the QP (the nearest to the goal that the others "
@@ -168,7 +183,7 @@ class Options:
         ):  # fmt: skip
             if getattr(self, name) < 1:
                 raise ValueError(f"{path}.{name}: must be a positive integer, got {getattr(self, name)!r}")
-        for name in ("admm_rho", "admm_sigma", "feasibility_tol"):
+        for name in ("admm_rho", "admm_sigma", "feasibility_tol", "structured_rho_scale"):
             positive(f"{path}.{name}", getattr(self, name))
         if not 0.0 < self.tau < 1.0:
             raise ValueError(f"{path}.tau: must be in (0, 1), got {self.tau!r}")

@@ -253,6 +253,9 @@ def build(problem) -> StructuredMPSC:
         eps_abs=tol,
         eps_rel=tol,
         polish_rounds=opts.structured_polish_rounds,
+        polish_soft_rows=opts.structured_polish_soft_rows,
+        adaptive_rho=opts.structured_adaptive_rho,
+        rho_scale=opts.structured_rho_scale,
     )
     scale, _ = plan_weight(problem)
     Q, R, P = problem.Q_lqr, problem.R_lqr, problem.P_lqr
