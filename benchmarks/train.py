@@ -222,9 +222,29 @@ BRAX_RIVAL = {"ppo": "ppo", "sac": "sac", "ddpg": "sac", "td3": "sac"}
 GOAL_BRAX_OVER_OURS = 5.0
 
 
-def lqr_threshold(env, params, eval_key, episodes: int, factor: float) -> dict:
+# The original suite's PPO on its own cart-pole task (configs/original_cartpole_ppo.yaml), trained with its own
+# hyperparameters for 180 s of wall time, scores this RMSE (issue 28's measurement, PyBullet on 2 CPU cores); the
+# goal is to reach it in a tenth of that time. --target-rmse takes the figure; the goal is printed, never an exit.
+ORIGINAL_PPO_RMSE = 0.619
+ORIGINAL_PPO_SECONDS = 180.0
+GOAL_TARGET_SECONDS = ORIGINAL_PPO_SECONDS / 10
+
+
+def lqr_threshold(env, params, eval_key, episodes: int, factor: float, target: float | None = None) -> dict:
+    """The RMSE to reach: ``factor`` times LQR's on the evaluation episodes, or ``target`` when given (LQR's is
+    reported either way)."""
     summary = evaluate(env, params, make_lqr(env, params), eval_key, episodes, measure_time=False).summary
-    return {"lqr_rmse": summary["rmse"], "threshold_rmse": factor * summary["rmse"]}
+    if target is None:
+        return {"lqr_rmse": summary["rmse"], "threshold_rmse": factor * summary["rmse"], "rmse_factor": factor}
+    return {"lqr_rmse": summary["rmse"], "threshold_rmse": target, "rmse_factor": None}
+
+
+def threshold_label(threshold: dict) -> str:
+    """``1.5x LQR's RMSE (0.0730; LQR 0.0487)``, or ``RMSE 0.619 (LQR 0.8408)`` for a given target."""
+    if threshold.get("rmse_factor") is None:
+        return f"RMSE {threshold['threshold_rmse']:g} (LQR {threshold['lqr_rmse']:.4f})"
+    factor, rmse, lqr = threshold["rmse_factor"], threshold["threshold_rmse"], threshold["lqr_rmse"]
+    return f"{factor}x LQR's RMSE ({rmse:.4f}; LQR {lqr:.4f})"
 
 
 def _point(clock: float, steps: int, summary: dict) -> dict:
@@ -621,8 +641,8 @@ def grid_section(record: dict) -> str:
     grid = record["sac_grid"]
     lines = _section_head(record)
     lines += [
-        f"SAC's time to {grid['rmse_factor']}x LQR's RMSE ({grid['threshold_rmse']:.4f}; LQR {grid['lqr_rmse']:.4f}), "
-        f"no crash, from seeds 0-{grid['seeds'] - 1}: training wall time, compile included, evaluation excluded; the "
+        f"SAC's time to {threshold_label(grid)}, no crash, from seeds 0-{grid['seeds'] - 1}: training wall time, "
+        "compile included, evaluation excluded; the "
         f"config's budget ({grid['total_env_steps']:,} env steps) and a {grid['max_seconds']:g} s limit. A seed that "
         "does not reach it counts at its end (marked *).",
         "",
@@ -664,6 +684,13 @@ def main(argv=None) -> int:
         "--brax", action=argparse.BooleanOptionalAction, default=True, help="brax's PPO and SAC beside ours"
     )
     parser.add_argument("--rmse-factor", type=float, default=1.5, help="threshold: this times LQR's RMSE")
+    parser.add_argument(
+        "--target-rmse",
+        type=float,
+        default=None,
+        help="threshold: this RMSE instead of --rmse-factor times LQR's (configs/original_cartpole_ppo.yaml: "
+        f"{ORIGINAL_PPO_RMSE}, the original's PPO after {ORIGINAL_PPO_SECONDS:g} s)",
+    )
     parser.add_argument("--eval-episodes", type=int, default=32, help="episodes per evaluation")
     parser.add_argument("--max-seconds", type=float, default=300.0, help="give up after this much training time")
     parser.add_argument("--chunk-seconds", type=float, default=3.0, help="training time between evaluations")
@@ -692,6 +719,8 @@ def main(argv=None) -> int:
         help="generated page; a run adds or replaces its config's section (another path keeps the committed page)",
     )
     args = parser.parse_args(argv)
+    if args.target_rmse is not None and not args.target_rmse > 0:
+        parser.error(f"--target-rmse: must be a positive RMSE, got {args.target_rmse}")
     console = Console()
 
     cfg = load_config(args.config, args.set)
@@ -711,11 +740,11 @@ def main(argv=None) -> int:
         if args.grid_seeds < 1:
             raise SystemExit("--grid-seeds: must be a positive integer")
         eval_key = jax.random.key(123)
-        threshold = lqr_threshold(env, params, eval_key, args.eval_episodes, args.rmse_factor)
+        threshold = lqr_threshold(env, params, eval_key, args.eval_episodes, args.rmse_factor, args.target_rmse)
         limits = (threshold["threshold_rmse"], eval_key, args.eval_episodes, args.max_seconds)
         rows = sac_grid(env, params, cfg, args.sac_grid, args.grid_seeds, limits, args.chunk_seconds, console)
         record["sac_grid"] = {
-            **threshold, "rmse_factor": args.rmse_factor, "seeds": args.grid_seeds, "max_seconds": args.max_seconds,
+            **threshold, "seeds": args.grid_seeds, "max_seconds": args.max_seconds,
             "total_env_steps": _config(cfg, "sac").total_env_steps, "rows": rows,
         }  # fmt: skip
         record["load_average_end"] = load_average()
@@ -781,10 +810,8 @@ def main(argv=None) -> int:
 
     if args.threshold:
         eval_key = jax.random.key(123)
-        threshold = lqr_threshold(env, params, eval_key, args.eval_episodes, args.rmse_factor)
-        console.print(
-            f"LQR rmse {threshold['lqr_rmse']:.4f}; threshold {args.rmse_factor} x = {threshold['threshold_rmse']:.4f}"
-        )
+        threshold = lqr_threshold(env, params, eval_key, args.eval_episodes, args.rmse_factor, args.target_rmse)
+        console.print(f"threshold: {threshold_label(threshold)}")
         # Every run: the same env, threshold, evaluation episodes and time limit.
         race = (env, params, cfg)
         limits = (threshold["threshold_rmse"], eval_key, args.eval_episodes, args.max_seconds)
@@ -799,16 +826,22 @@ def main(argv=None) -> int:
                 brax[rival] = brax_time_to_threshold(*race, rival, *limits, args.brax_evals, console)
         rows = ttq_rows(ours, brax)
         record["time_to_threshold"] = {
-            **threshold, "rmse_factor": args.rmse_factor, "ours": ours, "brax": brax,
+            **threshold, "ours": ours, "brax": brax,
             "brax_over_ours": {row["algo"]: row["brax_over_ours"] for row in rows},
         }  # fmt: skip
-        table = Table(title=f"time to {args.rmse_factor} x LQR's RMSE ({threshold['threshold_rmse']:.4f})")
+        table = Table(title=f"time to {threshold_label(threshold)}")
         for column in TTQ_COLUMNS:
             table.add_column(column, justify="right")
         for cells in ttq_table_rows(rows):
             table.add_row(*(markdown_cell(cell) for cell in cells))
         console.print(table)
-        console.print(f"goal: brax / ours >= {GOAL_BRAX_OVER_OURS:g} for every learner (issue 28)")
+        if args.target_rmse is None:
+            console.print(f"goal: brax / ours >= {GOAL_BRAX_OVER_OURS:g} for every learner (issue 28)")
+        else:
+            console.print(
+                f"goal on configs/original_cartpole_ppo.yaml: RMSE {ORIGINAL_PPO_RMSE} (the original's PPO after "
+                f"{ORIGINAL_PPO_SECONDS:g} s) within {GOAL_TARGET_SECONDS:g} s (issue 28)"
+            )
     record["load_average_end"] = load_average()
     args.json.parent.mkdir(parents=True, exist_ok=True)
     write_json(args.json, record)
@@ -838,8 +871,8 @@ def section(record: dict) -> str:
     threshold = record.get("time_to_threshold")
     if threshold:
         lines += [
-            f"Time to {threshold['rmse_factor']}x LQR's RMSE ({threshold['threshold_rmse']:.4f}; LQR "
-            f"{threshold['lqr_rmse']:.4f}), no crash: training wall time, compile included, evaluation excluded.",
+            f"Time to {threshold_label(threshold)}, no crash: training wall time, compile included, evaluation "
+            "excluded.",
             "",
         ]
         lines += markdown_table(TTQ_COLUMNS, ttq_table_rows(ttq_rows(threshold["ours"], threshold["brax"])))
