@@ -126,6 +126,7 @@ def test_ratio_rows_pair_each_learner_with_its_brax_rival(bench):
         return {"reached": reached, "time_s": time_s, "env_steps": 1000, "curve": []}
 
     ours = {"ppo": run(2.0, True), "sac": run(4.0, True), "ddpg": run(30.0, False), "td3": run(8.0, True)}
+    ours["ddpg"]["curve"] = [{"rmse": 0.91}, {"rmse": 0.7912}, {"rmse": 0.83}]
     brax = {"ppo": run(10.0, True), "sac": run(20.0, False)}
     rows = {row["algo"]: row for row in bench.ttq_rows(ours, brax)}
     assert {algo: row["brax_algo"] for algo, row in rows.items()} == {
@@ -135,7 +136,8 @@ def test_ratio_rows_pair_each_learner_with_its_brax_rival(bench):
     assert (rows["sac"]["brax_over_ours"], rows["sac"]["relation"]) == (5.0, ">=")  # brax stopped unreached at 20 s
     assert (rows["ddpg"]["brax_over_ours"], rows["ddpg"]["relation"]) == (None, "")
     cells = {cells[0]: cells for cells in bench.ttq_table_rows(list(rows.values()))}
-    assert cells["td3"][-1] == ">= 2.50" and cells["ddpg"][1] == "not reached (30.0)" and cells["ppo"][-1] == "5.00"
+    assert cells["td3"][-1] == ">= 2.50" and cells["ppo"][-1] == "5.00"
+    assert cells["ddpg"][1] == "not reached (30.0; best RMSE 0.791)"
     # Without brax's SAC (e.g. --no-brax), its rows have no rival time.
     (row,) = bench.ttq_rows({"sac": run(4.0, True)}, {})
     assert row["brax"] is None and row["brax_over_ours"] is None
@@ -191,17 +193,23 @@ def test_sac_grid_section_ranks_by_seeds_reached_then_median_time(bench):
 
 def test_the_threshold_is_a_factor_of_lqrs_rmse_or_a_given_target_and_the_labels_say_which(bench, monkeypatch):
     class Fake:
-        summary = {"rmse": 0.84}
+        summary = {"rmse": 0.84, "crash_rate": 0.125}
 
     monkeypatch.setattr(bench, "make_lqr", lambda env, params: None)
     monkeypatch.setattr(bench, "evaluate", lambda *args, **kwargs: Fake())
+    lqr = {"lqr_rmse": 0.84, "lqr_crash_rate": 0.125}
     relative = bench.lqr_threshold(None, None, None, 4, 1.5)
-    assert relative == {"lqr_rmse": 0.84, "threshold_rmse": pytest.approx(1.26), "rmse_factor": 1.5}
-    assert bench.threshold_label(relative) == "1.5x LQR's RMSE (1.2600; LQR 0.8400)"
+    assert relative == {**lqr, "threshold_rmse": pytest.approx(1.26), "rmse_factor": 1.5, "max_crash_rate": 0.0}
+    assert bench.threshold_label(relative) == "1.5x LQR's RMSE (1.2600; LQR 0.8400), no crash"
     target = bench.lqr_threshold(None, None, None, 4, 1.5, target=bench.ORIGINAL_PPO_RMSE)
-    assert target == {"lqr_rmse": 0.84, "threshold_rmse": 0.619, "rmse_factor": None}
-    assert bench.threshold_label(target) == "RMSE 0.619 (LQR 0.8400)"
+    assert target == {**lqr, "threshold_rmse": 0.619, "rmse_factor": None, "max_crash_rate": 0.125}
+    assert bench.threshold_label(target) == "RMSE 0.619 with at most LQR's crash rate (0.8400, 12.5%)"
     record = {**bench.run_record("train"), "overrides": [], "time_to_threshold": {**target, "ours": {}, "brax": {}}}
-    assert "Time to RMSE 0.619 (LQR 0.8400), no crash" in bench.section(record)
+    assert "Time to RMSE 0.619 with at most LQR's crash rate (0.8400, 12.5%): training" in bench.section(record)
+    # A crash rate at the allowance meets the bar; above it, or an RMSE above the target, does not.
+    assert bench._meets({"rmse": 0.6, "crash_rate": 0.125}, 0.619, 0.125)
+    assert not bench._meets({"rmse": 0.6, "crash_rate": 0.15625}, 0.619, 0.125)
+    assert not bench._meets({"rmse": 0.62, "crash_rate": 0.0}, 0.619, 0.125)
+    assert not bench._meets({"rmse": 0.6, "crash_rate": 0.03125}, 0.619)  # the default bar: no crash
     with pytest.raises(SystemExit):
         bench.main(["--target-rmse", "-1"])
