@@ -149,8 +149,8 @@ class Options:
     )
     structured_adaptive_rho: bool = option(
         True,
-        "structured: adapt the step size at the checks; false: keep the prepared one throughout, whose products are "
-        "folded once (the fastest iteration, for fixed iteration counts with structured_tol 0)",
+        "structured: adapt the step size at the checks; false: keep the prepared one (times structured_rho_scale) "
+        "throughout, for fixed iteration counts with structured_tol 0",
     )
     structured_rho_scale: float = option(
         1.0,
