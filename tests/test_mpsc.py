@@ -105,22 +105,35 @@ def test_batched_qp_equals_casadi_reference(x64_filters, casadi_filter):
     np.testing.assert_allclose(np.asarray(u_structured)[found], u_ref[found], atol=1e-4)
 
 
-def test_float32_structured_filter_equals_casadi_reference(structured_float32, casadi_filter):
-    """The default filter in float32: never certifies an infeasible QP, finds at least 70 % of the feasible ones (the
-    plan is checked on every row in float32, within feasibility_tol), and its input is within 1e-3 N of qpOASES."""
+@pytest.fixture(scope="module")
+def float32_parity(casadi_filter):
+    """48 states and proposals, ``(x, u, ok, u_ref)``: qpOASES's certified input and whether it found a plan."""
     x, u = _states(48, 4)
-    u_out, _, info = _certify_batch(structured_float32, jnp.asarray(x, jnp.float32), jnp.asarray(u, jnp.float32))
     reference = [casadi_filter.solve(xi, ui) for xi, ui in zip(x, u, strict=True)]
-    ok = np.array([r[2] for r in reference])
-    u_ref = np.array([r[0] for r in reference])
+    return x, u, np.array([r[2] for r in reference]), np.array([r[0] for r in reference])
+
+
+def _certified_where_qpoases_is(f, parity):
+    """The float32 filter ``f`` on ``parity``'s states: ``(u_out, found)``, after checking that it never certifies
+    where qpOASES finds no plan and certifies at least 70 % of where it does (its plan is checked on every row in
+    float32, within feasibility_tol)."""
+    x, u, ok, _ = parity
+    u_out, _, info = _certify_batch(f, jnp.asarray(x, jnp.float32), jnp.asarray(u, jnp.float32))
     found = np.asarray(info.feasible)
     assert 20 <= ok.sum() < len(ok)
     assert not np.any(found & ~ok) and found.sum() >= 0.7 * ok.sum(), (found.sum(), ok.sum())
-    np.testing.assert_allclose(np.asarray(u_out)[found], u_ref[found], atol=1e-3)
+    return np.asarray(u_out, np.float64), found
+
+
+def test_float32_structured_filter_equals_casadi_reference(structured_float32, float32_parity):
+    """The default filter in float32: certifies as ``_certified_where_qpoases_is`` requires, and its input is within
+    1e-3 N of qpOASES."""
+    u_out, found = _certified_where_qpoases_is(structured_float32, float32_parity)
+    np.testing.assert_allclose(u_out[found], float32_parity[3][found], atol=1e-3)
 
 
 def test_the_fixed_iteration_filter_certifies_like_qpoases_with_a_prepared_admm_over_the_nonzero_rows(
-    env, casadi_filter
+    env, float32_parity
 ):
     """benchmarks/mpsc.py's throughput setting: exactly 50 ADMM iterations at 10x the prepared step size, kept
     (its products not folded: 2 k n = 2 x 83 x 25 multiplications per iteration against k^2), no polish, float32.
@@ -138,14 +151,8 @@ def test_the_fixed_iteration_filter_certifies_like_qpoases_with_a_prepared_admm_
     assert smpsc.settings.max_iterations == 50 and not smpsc.settings.adaptive_rho
     default = make_linear_mpsc(env, env.default_params, OPTIONS).info["structured"].prepared
     np.testing.assert_allclose(float(smpsc.prepared.rho), 10.0 * float(default.rho), rtol=1e-5)
-    x, u = _states(48, 4)
-    u_out, _, info = _certify_batch(f, jnp.asarray(x, jnp.float32), jnp.asarray(u, jnp.float32))
-    reference = [casadi_filter.solve(xi, ui) for xi, ui in zip(x, u, strict=True)]
-    ok = np.array([r[2] for r in reference])
-    u_ref = np.array([r[0] for r in reference])
-    found = np.asarray(info.feasible)
-    assert not np.any(found & ~ok) and found.sum() >= 0.7 * ok.sum(), (found.sum(), ok.sum())
-    u_out = np.asarray(u_out, np.float64)
+    u_out, found = _certified_where_qpoases_is(f, float32_parity)
+    u, u_ref = float32_parity[1], float32_parity[3]
     passed = np.isclose(u_out, np.clip(u, -10.0, 10.0), rtol=0.0, atol=1e-6)[:, 0]
     compared = found & ~passed
     assert compared.sum() >= 10
