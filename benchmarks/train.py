@@ -224,7 +224,7 @@ GOAL_BRAX_OVER_OURS = 5.0
 
 
 # The original suite's PPO on its own cart-pole task (configs/original_cartpole_ppo.yaml), trained with its own
-# hyperparameters for 180 s of wall time, scores this RMSE (issue 28's measurement, PyBullet on 2 CPU cores); the
+# hyperparameters for 180 s of wall time, scores this RMSE (issue 28's measurement, in PyBullet); the
 # goal is to reach it in a tenth of that time. --target-rmse takes the figure; the goal is printed, never an exit.
 ORIGINAL_PPO_RMSE = 0.619
 ORIGINAL_PPO_SECONDS = 180.0
