@@ -322,6 +322,25 @@ def test_rows_zero_at_every_stage_but_one_are_left_out_of_the_prepared_admm_and_
     assert np.all(np.asarray(sols.warm.values).reshape(6, 20, 3)[:, :-1, 2] == 0.0)
 
 
+def test_a_left_out_row_whose_bounds_exclude_zero_makes_the_problem_infeasible():
+    # The terminal row's zero copy at stage 3 given the bound 0 <= -0.5: no plan meets it, though the ADMM never
+    # sees the row. The status says so, and the violation is the row's distance from 0.
+    layout, qp = _terminal_row_problem(soft=False)
+    row_high = np.array(qp.row_high)
+    row_high[3] = -0.5
+    bounds = tuple(qp[8:12]) + (qp.row_low, row_high)
+    with jax.enable_x64(True):
+        prepared = S.prepare(layout, qp)
+        assert prepared.keep.shape == (41,)
+        x0 = jnp.asarray(TERMINAL_STARTS[0])
+        sol = _solve_prepared(layout, prepared, x0, qp.c, qp.q, qp.r, bounds, None, S.Settings())
+        ok = _solve_prepared(
+            layout, prepared, x0, qp.c, qp.q, qp.r, tuple(qp[8:12]) + tuple(qp[14:]), None, S.Settings()
+        )
+    assert int(sol.status) == S.INFEASIBLE and float(sol.violation) == pytest.approx(0.5)
+    assert int(ok.status) == S.CONVERGED and float(ok.violation) < 1e-6
+
+
 def test_the_polish_of_soft_rows_gives_the_exact_solution_where_no_soft_row_is_violated():
     # The velocity box soft at an exact penalty (1,000 per m/s, far above its multipliers): where a plan holds it,
     # the soft QP's solution is the hard one (qpOASES). 30 ADMM iterations leave the plan 1e-4 N or more off; six

@@ -1034,6 +1034,16 @@ def solve_prepared(
         v = pr.T @ result.primal
     else:
         v = ops.to_v(result.primal)
+    if keep is not None:
+        # A left-out row's value is 0 at every plan: a hard one whose interval excludes 0 makes the QP infeasible.
+        left_out = jnp.ones(layout.num_dense, bool).at[keep].set(False)
+        miss = jnp.maximum(full.lo, -full.hi) * full.norms  # (scaled bounds with a zero offset) the distance of 0
+        miss = jnp.max(jnp.where(left_out & (jnp.asarray(_soft_mask(layout)) == 0), miss, 0.0), initial=0.0)
+        infeasible = (miss > 0) & (result.status != NUMERICAL)
+        result = result._replace(
+            status=jnp.where(infeasible, INFEASIBLE, result.status).astype(jnp.int32),
+            violation=jnp.maximum(result.violation, miss),
+        )
     result = result._replace(s=spread(result.s), y=spread(result.y))
     ex = (pr.ex_map @ theta).reshape(N, nx)
     return _finish(layout, full, (pr.Ex, ex), x_init, result, v)
