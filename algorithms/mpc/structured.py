@@ -46,7 +46,8 @@ the latest ``v~``. Two ways to apply the inverse:
   products fold into one ``(p, p)`` matrix for the initial ``t`` where that is cheaper (``p <= 2 n``: ``p^2``
   multiplications against ``2 p n``). Rows that are zero for the whole family (a general row imposed at one stage
   only, with zero ``C``, ``D`` at the others, as the MPSC's terminal rows) are left out of the ADMM: their value
-  is 0 whatever ``v``, so it runs on the ``k`` other rows (the MPSC's 275 rows, 83 of them not zero).
+  is 0 whatever ``v``, so it runs on the ``k`` other rows (the MPSC's 275 rows, 83 of them not zero); a hard one
+  whose bounds exclude 0 makes the QP ``INFEASIBLE``.
 - ``solve`` (matrices per copy, e.g. the QPs of SQP and SQP-RTI): condenses and factorises per copy (Cholesky of
   ``H + t G^T G``, kept as ``(H + t G^T G)^-1 [G^T, g]``), refactorised when ``t`` has moved by more than
   ``Settings.refactor_ratio``.
