@@ -97,7 +97,8 @@ def agreement(filters: dict, reference, count: int) -> str:
         state = jax.vmap(f.reset)(jnp.arange(count))
         out = jax.jit(jax.vmap(f.certify, in_axes=(0, 0, None, 0)))(x, u, f.params, state)
         u_out, ok = np.asarray(out[0], float)[:, 0], np.asarray(out[2].applied) == 0
-        passed = np.isclose(u_out, np.clip(np.asarray(u, float)[:, 0], -10.0, 10.0), rtol=0.0, atol=1e-6)
+        proposal = np.clip(np.asarray(u, float), np.asarray(f.params.u_low), np.asarray(f.params.u_high))[:, 0]
+        passed = np.isclose(u_out, proposal, rtol=0.0, atol=1e-6)
         compared = ok & ok_ref & ~passed
         error = np.abs(u_out - u_ref)[compared]
         largest = f"{error.max():.1e}" if error.size else ""

@@ -1011,7 +1011,7 @@ def solve_prepared(
         return pr.lam * xi + h + GTy, (pr.lam * xi, GTy, h)
 
     ops = _Operators(update, lambda t, factor: (factor, t), dual, lambda y: pr.GT.T @ y, lambda p: pr.T @ to_xi(p))
-    s0, y0, t0 = _start(full, warm, settings, pr.rho if settings.rho is None else settings.rho)
+    s0, y0, t0 = _start(full, warm, settings, pr.rho)  # a cold start: the prepared step size (rho_scale in it)
     if not settings.adaptive_rho:  # the prepared step size throughout (the folded products are for it)
         t0 = pr.rho
     result = _admm(layout, ops, data, kept(s0), kept(y0), t0, (), settings, keep)
