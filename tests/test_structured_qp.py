@@ -171,6 +171,45 @@ def test_random_time_varying_qps_with_state_and_general_rows_match_qpoases():
     assert solved >= 10 and active >= 4  # the state rows bind in several of them
 
 
+def test_the_condensed_hessian_is_the_sum_of_the_stage_costs_over_the_maps():
+    # The cost-to-go recursion against its definition, H = sum_k Ex_k^T Q_k Ex_k + Eu_k^T R_k Eu_k, on a
+    # time-varying problem with a pre-stabilising gain (float64).
+    rng = np.random.default_rng(3)
+    layout, qp = _random_time_varying(rng, 7, 4, 2, 0)
+    K = 0.5 * rng.normal(size=(7, 2, 4))
+    with jax.enable_x64(True):
+        Ex, Eu = S._maps(layout, jnp.asarray(qp.A), jnp.asarray(qp.B), jnp.asarray(K))
+        H = np.asarray(S._hessian(qp.A, qp.B, K, qp.Q, qp.R, Ex))
+    expected = np.einsum("kxn,kxy,kym->nm", Ex, qp.Q, Ex) + np.einsum("kun,kuv,kvm->nm", Eu, qp.R, Eu)
+    np.testing.assert_allclose(H, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+
+
+def test_a_fixed_step_size_folds_the_products_and_keeps_the_plans():
+    # Fixed step size, p <= 2n rows: one (p, p) product per iteration. Against the same step size unfolded (adaptive,
+    # but held by rho_min = rho_max), iteration for iteration (float64, tolerance 0: both run to the cap), and
+    # against qpOASES where that solves the problem.
+    rng = np.random.default_rng(4)
+    problems = [_random_time_varying(rng, 8, 3, 2, 0) for _ in range(8)]
+    layout = problems[0][0]
+    assert layout.num_dense <= 2 * layout.num_decisions
+    x0s = rng.uniform(-0.5, 0.5, (8, 3))
+    fixed = S.Settings(max_iterations=600, eps_abs=0.0, eps_rel=0.0, rho=0.3, adaptive_rho=False)
+    held = S.Settings(max_iterations=600, eps_abs=0.0, eps_rel=0.0, rho=0.3, rho_min=0.3, rho_max=0.3)
+    with jax.enable_x64(True):
+        batch = jax.tree.map(lambda *a: jnp.stack(a), *[qp for _, qp in problems])
+        run = lambda st: jax.jit(jax.vmap(lambda qp, x: S.solve(layout, qp, x, None, st)))(batch, jnp.asarray(x0s))  # noqa: E731
+        folded, unfolded = run(fixed), run(held)
+    np.testing.assert_allclose(folded.u, unfolded.u, atol=1e-9)
+    np.testing.assert_array_equal(folded.status, unfolded.status)
+    solved = 0
+    for i, (_, qp) in enumerate(problems):
+        u_ref, success = _qpoases(layout, qp, x0s[i])
+        if success and int(folded.status[i]) == S.CONVERGED:
+            solved += 1
+            np.testing.assert_allclose(folded.u[i, 0], u_ref, atol=1e-6)
+    assert solved >= 6
+
+
 def test_an_infeasible_problem_reports_its_status_and_a_finite_plan():
     # x_1 = x_0 + u with |u| <= 1 cannot reach x_1 <= 0 from x_0 = 5.
     layout = S.Layout(horizon=3, nx=1, nu=1, x_rows=(0,))

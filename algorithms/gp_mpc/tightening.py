@@ -63,10 +63,12 @@ def propagate_covariance_scan(A, B, K, model_var, sigma0):
     import jax
     import jax.numpy as jnp
 
+    from scg_algorithms.mpc.structured import small_matmul
+
     def stage(sigma, inputs):
         A_i, B_i, var_i = inputs
-        closed = A_i - B_i @ K
-        sigma = closed @ sigma @ closed.T + jnp.diag(var_i)
+        closed = A_i - small_matmul(B_i, K)
+        sigma = small_matmul(small_matmul(closed, sigma), closed.T) + jnp.diag(var_i)
         sigma = 0.5 * (sigma + sigma.T)
         return sigma, sigma
 
