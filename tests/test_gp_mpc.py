@@ -72,6 +72,8 @@ def test_bad_options_are_named(paper_cartpole):
         make_gp_mpc(env, prior, {"kernel": "matern"})
     with pytest.raises(ValueError, match=r"controllers.gp_mpc.inducing_points: unknown"):
         make_gp_mpc(env, prior, {"inducing_points": 10})
+    with pytest.raises(ValueError, match=r"controllers.gp_mpc.qp_max_iter: must be"):
+        make_gp_mpc(env, prior, {"qp_max_iter": 0, "solver": "sqp_rti"})
 
 
 def test_a_saved_run_loads_to_the_same_controller(paper_cartpole, tmp_path):

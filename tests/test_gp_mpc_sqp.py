@@ -64,12 +64,13 @@ def gp_programs(setting):
 
 def test_a_zero_gp_gives_the_nonlinear_sqp_rti(setting, gp_programs):
     # Zero mean and a signal variance of 1e-16 (margins below 1e-5): the same first input as the nonlinear MPC's
-    # SQP-RTI on the prior, at three states (the SQP's first step iterates to convergence). The GP-MPC runs through
-    # the module's compiled program (the GP an argument; ``make_gp_mpc`` builds the same controller from it).
+    # SQP-RTI on the prior (with GP-MPC's ADMM cap), at three states (the SQP's first step iterates to convergence).
+    # The GP-MPC runs through the module's compiled program (the GP an argument; ``make_gp_mpc`` builds the same
+    # controller from it).
     env, _, prior, reference = setting
     zero = _posterior(0.0, 1e-16)
     gp_mpc = make_gp_mpc(env, prior, {**OPTIONS, "solver": "sqp_rti"}, zero)
-    nmpc = make_nonlinear_mpc(env, prior, {**OPTIONS, "solver": "sqp_rti"})
+    nmpc = make_nonlinear_mpc(env, prior, {**OPTIONS, "solver": "sqp_rti", "qp_max_iter": Options().qp_max_iter})
     margins = gp_mpc.info["plan_margins"](jnp.tile(jnp.asarray(STATES[0]), (H + 1, 1)), jnp.zeros((H, 1)))
     assert 0.0 < float(jnp.max(margins)) < 1e-5
 
