@@ -64,7 +64,6 @@ from scg_algorithms.evaluation import evaluate, make_evaluator
 from scg_algorithms.lqr import make_lqr
 from scg_algorithms.rl.envs import policy_action_to_input
 from scg_algorithms.rl.policy import algorithm_module
-from scg_algorithms.rl.training import init_runner_state
 from scg_jax.config import load_config, make_from_config
 from scg_jax.files import write_atomic, write_json
 from scg_jax.rollout import make_rollout
@@ -336,7 +335,7 @@ def ours_time_to_threshold(
         )
 
     return race_to_threshold(
-        lambda: jax.block_until_ready(init_runner_state(learner, jax.random.key(seed), params)),
+        lambda: jax.block_until_ready(jax.jit(learner.init)(jax.random.key(seed), params)),
         lambda state, n: jax.block_until_ready(chunk_jit(state, params, jnp.int32(n))),
         lambda state: evaluate_policy(learner.policy_params(state), eval_key).summary,
         num_iterations=learner.num_iterations, steps_per_iteration=learner.steps_per_iteration,

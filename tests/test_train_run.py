@@ -180,25 +180,6 @@ def test_learner_parts_come_from_the_registry():
 
 
 @pytest.mark.parametrize("algo", ["ppo", "sac"])
-def test_a_run_starts_from_the_learners_own_init_bit_for_bit(algo):
-    # run_training compiles init without XLA's backend optimisation (it runs once): the same runner state as the
-    # default compilation, leaf for leaf.
-    from scg_algorithms.rl.policy import algorithm_module
-    from scg_algorithms.rl.training import init_runner_state
-    from tests.rl_helpers import TINY_OFF_POLICY
-
-    env = scg_jax.make("cartpole", episode_len_sec=1.0)
-    params = env.default_params
-    options = tiny_ppo(256, num_epochs=1, num_minibatches=2) if algo == "ppo" else TINY_OFF_POLICY
-    learner = algorithm_module(algo, "make_learner")(options, env)
-    key = jax.random.key(SEED)
-    data = lambda a: np.asarray(jax.random.key_data(a) if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key) else a)  # noqa: E731
-    once, default = init_runner_state(learner, key, params), jax.jit(learner.init)(key, params)
-    for a, b in zip(jax.tree.leaves(once), jax.tree.leaves(default), strict=True):
-        np.testing.assert_array_equal(data(a), data(b))
-
-
-@pytest.mark.parametrize("algo", ["ppo", "sac"])
 def test_collect_is_the_collection_of_the_iteration_update_runs(algo):
     # benchmarks/train.py times Learner.collect as the collection part of an iteration: it must be exactly that
     # part (same key, same policy), so the collector it returns is bit for bit the one update carries on with.

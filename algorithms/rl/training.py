@@ -121,17 +121,6 @@ def find_obs_stats(policy_params) -> RunningStats | None:
     return found[0] if found else None
 
 
-# XLA options for a program that runs once per run: without the backend's optimisation passes PPO's init on the
-# cart-pole compiles in 0.6 s instead of 1.3 s (2 CPU cores), and its one call takes 3 ms either way.
-RUN_ONCE_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
-
-
-def init_runner_state(learner: Learner, key, params):
-    """``learner.init(key, params)`` compiled for one call (``RUN_ONCE_COMPILER_OPTIONS``): what a training run and
-    ``benchmarks/train.py`` start from."""
-    return jax.jit(learner.init, compiler_options=RUN_ONCE_COMPILER_OPTIONS)(key, params)
-
-
 def _make_chunk_runner(update: Callable, max_chunk: int, state_shardings=None, mesh=None):
     """``run(runner_state, params, n) -> (runner_state, metrics (max_chunk, ...) per key)``: n iterations, n traced.
 
@@ -529,7 +518,7 @@ def _start_run(run: _Run, key, resume: bool, overwrite: bool) -> None:
     if resume and checkpoint_file.exists():
         _resume(run, checkpoint_file, key)
     else:
-        run.runner_state = init_runner_state(run.learner, key, run.params)
+        run.runner_state = jax.jit(run.learner.init)(key, run.params)
     if run.mesh is not None:
         from scg_algorithms.rl.sharding import shard_runner_state
 
