@@ -70,7 +70,16 @@ def test_a_zero_gp_gives_the_nonlinear_sqp_rti(setting, gp_programs):
     env, _, prior, reference = setting
     zero = _posterior(0.0, 1e-16)
     gp_mpc = make_gp_mpc(env, prior, {**OPTIONS, "solver": "sqp_rti"}, zero)
-    nmpc = make_nonlinear_mpc(env, prior, {**OPTIONS, "solver": "sqp_rti", "qp_max_iter": Options().qp_max_iter})
+    nmpc = make_nonlinear_mpc(
+        env,
+        prior,
+        {
+            **OPTIONS,
+            "solver": "sqp_rti",
+            "qp_max_iter": Options().qp_max_iter,
+            "qp_polish_rounds": Options().qp_polish_rounds,
+        },
+    )
     margins = gp_mpc.info["plan_margins"](jnp.tile(jnp.asarray(STATES[0]), (H + 1, 1)), jnp.zeros((H, 1)))
     assert 0.0 < float(jnp.max(margins)) < 1e-5
 

@@ -702,7 +702,12 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
 
     upper, lower = active_sets(result.s, result.y)
     init = (upper, lower, (result.primal, result.s, jnp.zeros_like(result.y)), jnp.zeros((), bool))
-    (_, _, (primal, s, y), ok), _ = lax.scan(round_, init, None, length=settings.polish_rounds)
+    # Rounds until one is accepted (under vmap: until every copy has one), at most polish_rounds.
+    _, (_, _, (primal, s, y), ok) = lax.while_loop(
+        lambda carry: (carry[0] < settings.polish_rounds) & ~carry[1][3],
+        lambda carry: (carry[0] + 1, round_(carry[1], None)[0]),
+        (jnp.zeros((), jnp.int32), init),
+    )
     ok = ok & (result.status != NUMERICAL)
     # The polished rows at their polished values (within tol of their bounds), the others at the ADMM's.
     s_final = jnp.where(hard, jnp.clip(s, lo, hi), result.s)
