@@ -683,7 +683,7 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
         priced = jnp.all(jnp.abs(y) <= price * (1.0 + tol))  # a soft row's force within its price
         return (jnp.max(violation, initial=0.0) <= tol) & complementary & finite & priced
 
-    def round_(carry, _):
+    def round_(carry):
         upper, lower, best, accepted = carry
         active = upper | lower
         # The active rows first (by index), then the others as padding; at most k of them take part (all of them
@@ -698,14 +698,14 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
         y = jnp.zeros(p, dtype).at[index].set(lam)
         good = (jnp.sum(active) <= k) & acceptable(primal, s, y) & ~accepted
         best = jax.tree.map(lambda a, b: jnp.where(good, a, b), (primal, s, y), best)
-        return (*active_sets(s, y), best, accepted | good), None
+        return (*active_sets(s, y), best, accepted | good)
 
     upper, lower = active_sets(result.s, result.y)
     init = (upper, lower, (result.primal, result.s, jnp.zeros_like(result.y)), jnp.zeros((), bool))
     # Rounds until one is accepted (under vmap: until every copy has one), at most polish_rounds.
     _, (_, _, (primal, s, y), ok) = lax.while_loop(
         lambda carry: (carry[0] < settings.polish_rounds) & ~carry[1][3],
-        lambda carry: (carry[0] + 1, round_(carry[1], None)[0]),
+        lambda carry: (carry[0] + 1, round_(carry[1])),
         (jnp.zeros((), jnp.int32), init),
     )
     ok = ok & (result.status != NUMERICAL)
