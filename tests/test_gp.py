@@ -156,3 +156,39 @@ def test_bad_input_names_the_field():
         gp.exact_posterior(np.zeros((3, 1)), np.zeros((3, 1)), gp.hyperparams([[1.0]], [1.0], [0.1]), "matern")
     with pytest.raises(ValueError, match=r"data: expected inputs \(n, d\) and targets \(n, m\)"):
         gp.fit_hyperparams(np.zeros((4, 2)), np.zeros((3, 1)))
+
+
+def _random_fitc(kernel: str, seed: int = 4):
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-1, 1, (60, 5))
+    y = np.stack([np.sin(2 * x[:, 0]), x[:, 1] * x[:, 2], np.cos(x[:, 3] - x[:, 4])], axis=1)
+    hp = gp.hyperparams(rng.uniform(0.3, 2.0, (3, 5)), [0.5, 1.0, 2.0], [1e-3, 1e-2, 1e-4])
+    return gp.fitc_posterior(x, y, hp, x[:15], kernel), rng.uniform(-1.5, 1.5, (8, 5))
+
+
+@pytest.mark.parametrize("kernel", gp.KERNELS)
+def test_predict_mean_has_predicts_value_and_the_closed_form_jacobian(kernel):
+    post, z = _random_fitc(kernel)
+    with jax.enable_x64(True):
+        post64 = jax.tree.map(jnp.asarray, post)
+        for zi in jnp.asarray(z):
+            np.testing.assert_array_equal(gp.predict_mean(post64, zi), gp.predict(post64, zi)[0])
+            automatic = jax.jacfwd(lambda q: gp.predict(post64, q)[0])(zi)  # through the kernel's expansion
+            np.testing.assert_allclose(jax.jacfwd(lambda q: gp.predict_mean(post64, q))(zi), automatic, atol=1e-13)
+            np.testing.assert_allclose(jax.jacrev(lambda q: gp.predict_mean(post64, q))(zi), automatic, atol=1e-13)
+    weights = jnp.asarray(post.weights, jnp.float32)
+    with pytest.raises(NotImplementedError, match="posterior"):
+        jax.grad(lambda w: gp.predict_mean(post.replace(weights=w), jnp.zeros(5)).sum())(weights)
+
+
+@pytest.mark.parametrize("kernel", gp.KERNELS)
+def test_predict_split_gives_the_float64_variance_inside_a_vmapped_scan(kernel):
+    post, z = _random_fitc(kernel)
+    _, expected = gp.predict_batch(post, z)
+    split = gp.split_posterior(post)
+    # Two copies of a scan over the points, with x64 off: the float32 program of a closed-loop evaluation.
+    scan = lambda points: jax.lax.scan(lambda c, zi: (c, gp.predict_split(split, zi)), 0.0, points)[1]  # noqa: E731
+    var = jax.jit(jax.vmap(scan))(jnp.asarray(np.stack([z, z]), jnp.float32))
+    assert var.dtype == jnp.float32
+    np.testing.assert_allclose(var[0], expected, rtol=2e-6, atol=0)
+    np.testing.assert_array_equal(var[0], var[1])

@@ -171,7 +171,7 @@ def gp_sqp_mpc_builder(env, prior_params, opts: Options):
                 return jnp.zeros_like(x)
             # hi + lo: the float32 GP with x64 off, the float64 one with it on.
             exact = jax.tree.map(lambda h, lo: h.astype(x.dtype) + lo.astype(x.dtype), posterior.hi, posterior.lo)
-            return gp.predict(exact, jnp.concatenate([x, u]))[0]
+            return gp.predict_mean(exact, jnp.concatenate([x, u]))
 
         def variance(x, u):
             if posterior is None:
