@@ -170,7 +170,7 @@ def predict_mean(posterior: GPPosterior, z):
     ``d mean_i / d z = sum_j w_ij k'_ij 2 (z - x_j) / l_i^2`` (``k'`` the kernel's slope in the scaled squared
     distance ``sq``: ``-k / 2`` for the RBF kernel) once and apply it to every tangent; differentiating the kernel's
     expansion would push each tangent through it. The value is ``predict``'s to the bit; the Jacobian agrees with
-    automatic differentiation to round-off. Not differentiable in ``posterior``.
+    automatic differentiation to round-off. Derivatives in ``posterior`` are ``predict``'s automatic ones.
     """
     return _mean_and_jacobian(posterior, z)[0]
 
@@ -198,7 +198,12 @@ def _predict_mean_jvp(primals, tangents):
     posterior, z = primals
     posterior_tangent, dz = tangents
     if not all(isinstance(t, SymbolicZero) for t in jax.tree.leaves(posterior_tangent)):
-        raise NotImplementedError("predict_mean: differentiable in z only, not in the posterior")
+        # Derivatives in the posterior (rare: a fit through predictions) go through predict's expression.
+        posterior_tangent, dz = (
+            jax.tree.map(lambda t, p: jnp.zeros_like(p) if isinstance(t, SymbolicZero) else t, tangent, primal)
+            for tangent, primal in ((posterior_tangent, posterior), (dz, z))
+        )
+        return jax.jvp(lambda p, q: predict(p, q)[0], primals, (posterior_tangent, dz))
     mean, jac = _mean_and_jacobian(posterior, z, jacobian=True)
     if isinstance(dz, SymbolicZero):
         return mean, jnp.zeros_like(mean)

@@ -176,9 +176,18 @@ def test_predict_mean_has_predicts_value_and_the_closed_form_jacobian(kernel):
             automatic = jax.jacfwd(lambda q: gp.predict(post64, q)[0])(zi)  # through the kernel's expansion
             np.testing.assert_allclose(jax.jacfwd(lambda q: gp.predict_mean(post64, q))(zi), automatic, atol=1e-13)
             np.testing.assert_allclose(jax.jacrev(lambda q: gp.predict_mean(post64, q))(zi), automatic, atol=1e-13)
-    weights = jnp.asarray(post.weights, jnp.float32)
-    with pytest.raises(NotImplementedError, match="posterior"):
-        jax.grad(lambda w: gp.predict_mean(post.replace(weights=w), jnp.zeros(5)).sum())(weights)
+        # In the posterior (its weights and length scales) it differentiates as predict does.
+        z0 = jnp.asarray(z[0])
+
+        def total(mean_fn, w, ls):
+            posterior = post64.replace(weights=w, hyperparams=post64.hyperparams.replace(length_scales=ls))
+            return jnp.sum(mean_fn(posterior, z0) ** 2)
+
+        args = (post64.weights, post64.hyperparams.length_scales)
+        ours = jax.grad(lambda w, ls: total(gp.predict_mean, w, ls), argnums=(0, 1))(*args)
+        reference = jax.grad(lambda w, ls: total(lambda p, q: gp.predict(p, q)[0], w, ls), argnums=(0, 1))(*args)
+        for a, b in zip(ours, reference, strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
 
 
 @pytest.mark.parametrize("kernel", gp.KERNELS)
