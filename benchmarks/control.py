@@ -599,7 +599,7 @@ def write_solvers_markdown(path, qp_rows: list[dict], rti_rows: list[dict], meta
     notes = f"""
 Linear MPC, horizon {meta["config"]["horizon"]}, float32, random states around the reference (the parity tests'
 sets; u0 error over the states qpOASES solves), each solved cold. admm: `scg_algorithms.mpc.structured` with linear
-MPC's defaults (tolerance 1e-5, at most 1,000 iterations and 3 rounds of active-set polish; each batch runs until
+MPC's defaults (tolerance 1e-5, at most 1,000 iterations and 6 rounds of active-set polish; each batch runs until
 its slowest copy converges); qpax: 40 interior-point iterations; qpOASES and OSQP: `linear_mpc_casadi`, one problem
 at a time on the host. env: one vmapped `env.step`. A copy whose iterate still violates a row by more than
 `feasibility_tol` (1e-3) after its iterations falls back to the clipped LQR input, which is where a throughput

@@ -301,6 +301,32 @@ def test_the_fixed_step_throughput_settings_run_their_iterations_and_match_qpoas
     assert np.sum(np.any((np.abs(u_casadi - lo) < 1e-6) | (np.abs(u_casadi - hi) < 1e-6), axis=1)) >= 5
 
 
+@pytest.mark.parametrize(
+    "system, with_state, picked",
+    [("quadrotor_2d", False, [155, 212, 964]), ("quadrotor_1d", True, [150])],
+    ids=["quadrotor_2d_input", "quadrotor_1d_ceiling"],
+)
+def test_the_polish_refuses_a_wrong_sign_multiplier_and_a_crossed_free_row_in_float32(system, with_state, picked):
+    # States of the benchmark's 1,000 (cases.random_states) where the float32 polish, accepting at the square root of
+    # the resolution (3.5e-4), took a plan that held a row with a multiplier of the wrong sign (2D quadrotor: first
+    # inputs 2.4e-3, 3.0e-3 and 1.3e-3 N from qpOASES's) or let a free row cross the 1D quadrotor's ceiling by
+    # 1.35e-4 half-widths (1.1e-3 N). With POLISH_TOL and POLISH_DUAL_TOL the next round finds qpOASES's set.
+    env, params = cases.make_case_env(system, with_state=with_state)
+    reference = Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
+    case = cases.CASES[system]
+    steps, states = cases.random_states(env, reference, case.offset, case.spread, 1000)
+    steps, states = steps[picked], states[picked]
+    jax_mpc = make_linear_mpc(env, params, {"horizon": 20})
+    casadi_mpc = make_linear_mpc_casadi(env, params, {"horizon": 20})
+    reference32 = Reference(*(jnp.asarray(a, jnp.float32) for a in reference))
+    act = jax.jit(jax.vmap(lambda x, k: jax_mpc.act(jax_mpc.reset(None, reference32), x, k, reference32)))
+    u_jax, ctrl_state = act(jnp.asarray(states, jnp.float32), jnp.asarray(steps))
+    solved = [casadi_mpc.act({}, x, k, reference) for k, x in zip(steps, states, strict=True)]
+    assert all(info["success"] for _, info in solved)
+    np.testing.assert_array_equal(np.asarray(ctrl_state.status), structured.CONVERGED)
+    np.testing.assert_allclose(np.asarray(u_jax), np.array([u for u, _ in solved]), atol=1e-4)
+
+
 def test_without_active_constraints_the_first_input_is_the_lqr_input(cartpole):
     # P is the Riccati solution, so the finite-horizon optimum starts with the infinite-horizon (LQR) input, for
     # either condensing (pre-stabilised or plain).

@@ -111,7 +111,9 @@ class Options(setup.MPCOptions):
     )
     admm_check_every: int = option(5, "admm: iterations between residual checks and step-size updates")
     admm_polish_rounds: int = option(
-        3, "admm: active-set polish rounds after the ADMM (0: none; cheaper per step, less accurate at few iterations)"
+        6,
+        "admm: active-set polish rounds after the ADMM, at most (0: none; cheaper per step, less accurate at few "
+        "iterations; a batch stops once every copy has an accepted round)",
     )
     admm_adaptive_rho: bool = option(
         True,

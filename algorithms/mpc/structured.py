@@ -90,6 +90,13 @@ NUMERICAL = 3
 STATUS_NAMES = ("converged", "max_iterations", "infeasible", "numerical")
 SLACK_MODES = ("stage", "shared")
 DEFAULT_RHO = 1e-3  # the initial step size of ``solve`` when neither the settings nor a warm start give one
+# The polish's acceptance in float32 of a free row's violation and a multiplier's wrong sign (a row held at its bound
+# may still sit the square root of the resolution from it, the rounding of the solve). At that root (3.5e-4) the
+# polish let through a plan that held a row with a multiplier of the wrong sign (2.4e-4, scaled), which put the 2D
+# quadrotor's first input 2.4e-3 N from qpOASES's, and one whose free row crossed the 1D quadrotor's ceiling by
+# 1.35e-4 half-widths (1.1e-3 N off).
+POLISH_TOL = 1e-5
+POLISH_DUAL_TOL = 2e-6
 
 
 # --------------------------------------------------------------------------------------------- problem
@@ -210,8 +217,9 @@ class Settings:
         alpha: relaxation in (0, 2). refactor_ratio: ``solve`` refactorises when ``t`` has moved by this factor.
         polish_rounds: rounds of the active-set polish after the ADMM (0: none; see ``_polish``).
         polish_tol: the largest violation of a hard row (in half-widths of its interval) and of complementarity a
-            polished plan may have to be accepted (``None``: the square root of the dtype's resolution, 3e-4 in
-            float32, 1.5e-8 in float64).
+            polished plan may have to be accepted (``None``: the square root of the dtype's resolution for a row held
+            at its bound, 3.5e-4 in float32 and 1.5e-8 in float64; at most ``POLISH_TOL`` for the violation of a
+            free row and ``POLISH_DUAL_TOL`` for a multiplier of the wrong sign, 1e-5 and 2e-6 in float32).
         polish_soft_rows: the polish also holds the soft rows at their bounds where it finds them there, and is
             accepted only if their multipliers stay within the violation's price (per-stage slack, ``l2 = 0``: an
             exact penalty): the soft problem's exact solution wherever no soft row is violated at it (a plan exists),
@@ -665,7 +673,11 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
     lo, hi = data.lo, data.hi
     y_soft = jnp.where(hard, 0.0, result.y)
     primal_free, s_free = ops.free(y_soft)
-    tol = float(np.sqrt(np.finfo(dtype).eps)) if settings.polish_tol is None else settings.polish_tol
+    # held_tol: how far a row held at its bound may sit from it (the solve's rounding); tol: how far a free row may
+    # cross its bound; dual_tol: how far a multiplier may push the wrong way (see POLISH_TOL).
+    held_tol = float(np.sqrt(np.finfo(dtype).eps)) if settings.polish_tol is None else settings.polish_tol
+    tol = min(held_tol, POLISH_TOL) if settings.polish_tol is None else settings.polish_tol
+    dual_tol = min(held_tol, POLISH_DUAL_TOL) if settings.polish_tol is None else settings.polish_tol
     k = min(n, p)
 
     def active_sets(s, y):
@@ -675,13 +687,15 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
 
     def acceptable(primal, s, y):
         violation = jnp.where(hard, jnp.maximum(jnp.maximum(s - hi, lo - s), 0.0), 0.0)
-        at_high = jnp.isfinite(hi) & (s >= hi - tol)
-        at_low = jnp.isfinite(lo) & (s <= lo + tol)
+        held = y != 0  # the rows of the set (the others have no multiplier)
+        at_high = jnp.isfinite(hi) & (s >= hi - held_tol)
+        at_low = jnp.isfinite(lo) & (s <= lo + held_tol)
         # A multiplier pushes only at its own bound, with the right sign.
-        complementary = ~jnp.any(hard & (((y > tol) & ~at_high) | ((y < -tol) & ~at_low)))
+        complementary = ~jnp.any(hard & (((y > dual_tol) & ~at_high) | ((y < -dual_tol) & ~at_low)))
         finite = jnp.all(jnp.isfinite(s)) & jnp.all(jnp.isfinite(y)) & jnp.all(jnp.isfinite(primal))
-        priced = jnp.all(jnp.abs(y) <= price * (1.0 + tol))  # a soft row's force within its price
-        return (jnp.max(violation, initial=0.0) <= tol) & complementary & finite & priced
+        priced = jnp.all(jnp.abs(y) <= price * (1.0 + held_tol))  # a soft row's force within its price
+        feasible = jnp.all(violation <= jnp.where(held, held_tol, tol))
+        return feasible & complementary & finite & priced
 
     def round_(carry):
         upper, lower, best, accepted = carry
