@@ -155,6 +155,26 @@ def test_page_sections_are_replaced_or_added_never_the_others(bench):
     assert bench.merge_section(page, "`configs/b.yaml`", "B1\n\n| x |") == page  # same run again: same page
 
 
+def test_a_rerun_with_a_warm_compilation_cache_writes_its_own_section(bench, tmp_path, monkeypatch):
+    updates = {}
+    monkeypatch.setattr(bench.jax.config, "update", lambda name, value: updates.__setitem__(name, value))
+    folder = tmp_path / "cache"
+    cold = bench.use_compile_cache(folder)
+    assert cold == {"dir": str(folder), "entries_at_start": 0}
+    assert updates == {"jax_compilation_cache_dir": str(folder), "jax_persistent_cache_min_compile_time_secs": 0.0}
+    for name in ("a-cache", "b-cache"):
+        (folder / name).write_bytes(b"x")
+    warm = bench.use_compile_cache(folder)
+    assert warm["entries_at_start"] == 2 and bench.use_compile_cache(None) is None
+    config = Path("configs/cartpole_stabilization.yaml")
+    assert bench.section_heading(config, None) == bench.section_heading(config, cold) == f"`{config.as_posix()}`"
+    assert bench.section_heading(config, warm) == f"`{config.as_posix()}`, warm compilation cache"
+    record = {"overrides": [], "compile_cache": warm}
+    monkeypatch.setattr(bench, "machine_line", lambda record: "Measured here.")
+    assert "cache held 2 entries at the start, for ours and brax's alike" in bench.section(record)
+    assert "cache held" not in bench.section({**record, "compile_cache": cold})
+
+
 def test_sac_grid_points_parse_and_bad_ones_name_the_option(bench):
     import argparse
 
