@@ -916,6 +916,13 @@ def section(record: dict) -> str:
     """The page's section for one run: overrides, the machine line, the throughput table, the time-to-threshold
     table and the run split."""
     lines = _section_head(record)
+    cache = record.get("compile_cache")
+    if cache and cache["entries_at_start"]:
+        lines += [
+            f"A rerun: JAX's persistent compilation cache held {cache['entries_at_start']:,} entries at the start, for "
+            "ours and brax's alike, so the compile times below are mostly loading.",
+            "",
+        ]
     if record.get("throughput"):
         lines += [
             "Training throughput; the raw env (make_rollout, constant action) is the baseline in the same run:",
@@ -927,13 +934,6 @@ def section(record: dict) -> str:
              for r in record["throughput"]],
         )  # fmt: skip
         lines.append("")
-    cache = record.get("compile_cache")
-    if cache and cache["entries_at_start"]:
-        lines += [
-            f"A rerun: JAX's persistent compilation cache held {cache['entries_at_start']:,} entries at the start, for "
-            "ours and brax's alike, so the compile times below are mostly loading.",
-            "",
-        ]
     threshold = record.get("time_to_threshold")
     if threshold:
         lines += [
