@@ -657,9 +657,10 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
     round solves the equality-constrained QP of the current active set (the rows at a bound whose multiplier pushes
     outwards, at most ``n`` of them, gathered into an ``(n, n)`` Schur system: one small Cholesky per copy and
     round) and updates the set by the primal-dual rule ``y_i + (s_i - bound_i) > 0`` (Hintermueller et al. 2002).
-    The result replaces the ADMM's, with status ``CONVERGED``, only if every hard row holds within ``polish_tol``
-    (relative to its half-width) and no active multiplier has the wrong sign by more than ``polish_tol``; otherwise
-    the ADMM's plan stands. Near the solution this converges in one or two rounds where the ADMM needs thousands of
+    The result replaces the ADMM's, with status ``CONVERGED``, only if every hard row holds (a free row within
+    ``POLISH_TOL`` of its half-width, a row held at its bound within the square root of the resolution) and no
+    multiplier has the wrong sign by more than ``POLISH_DUAL_TOL`` (float32; float64: the square root for all
+    three; ``Settings.polish_tol`` replaces them all); otherwise the ADMM's plan stands. Near the solution this converges in one or two rounds where the ADMM needs thousands of
     iterations (degenerate active sets along a state bound).
     """
     n, p = layout.num_decisions, data.lo.shape[0]  # p: the rows data holds (keep: the kept rows)
