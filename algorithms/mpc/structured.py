@@ -660,8 +660,9 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
     The result replaces the ADMM's, with status ``CONVERGED``, only if every hard row holds (a free row within
     ``POLISH_TOL`` of its half-width, a row held at its bound within the square root of the resolution) and no
     multiplier has the wrong sign by more than ``POLISH_DUAL_TOL`` (float32; float64: the square root for all
-    three; ``Settings.polish_tol`` replaces them all); otherwise the ADMM's plan stands. Near the solution this converges in one or two rounds where the ADMM needs thousands of
-    iterations (degenerate active sets along a state bound).
+    three; ``Settings.polish_tol`` replaces them all); otherwise the ADMM's plan stands. Near the solution this
+    converges in one or two rounds where the ADMM needs thousands of iterations (degenerate active sets along a
+    state bound).
     """
     n, p = layout.num_decisions, data.lo.shape[0]  # p: the rows data holds (keep: the kept rows)
     dtype = result.s.dtype
