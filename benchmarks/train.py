@@ -726,18 +726,18 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--grid-seeds", type=int, default=3, help="--sac-grid: seeds per setting")
     parser.add_argument(
+        "--grid-markdown",
+        type=Path,
+        default=DEFAULT_GRID_MARKDOWN,
+        help="--sac-grid: generated page (one section per config)",
+    )
+    parser.add_argument(
         "--compile-cache",
         type=Path,
         default=None,
         metavar="DIR",
         help="JAX's persistent compilation cache in DIR, for ours and brax's alike: a run that finds it holding "
         "entries (a rerun) writes its own section, '<config>, warm compilation cache'",
-    )
-    parser.add_argument(
-        "--grid-markdown",
-        type=Path,
-        default=DEFAULT_GRID_MARKDOWN,
-        help="--sac-grid: generated page (one section per config)",
     )
     parser.add_argument("--json", type=Path, default=Path("benchmarks/results/train.json"), help="results file")
     parser.add_argument(
@@ -909,7 +909,11 @@ def section_heading(config, cache: dict | None) -> str:
     """The page section of a run: its config, and for a run whose compilation cache held entries at the start, apart
     (a cold run with a cache writes the config's own section)."""
     heading = f"`{Path(config).as_posix()}`"
-    return f"{heading}, warm compilation cache" if cache and cache["entries_at_start"] else heading
+    return f"{heading}, warm compilation cache" if _warm(cache) else heading
+
+
+def _warm(cache: dict | None) -> bool:
+    return bool(cache and cache["entries_at_start"])
 
 
 def section(record: dict) -> str:
@@ -917,7 +921,7 @@ def section(record: dict) -> str:
     table and the run split."""
     lines = _section_head(record)
     cache = record.get("compile_cache")
-    if cache and cache["entries_at_start"]:
+    if _warm(cache):
         lines += [
             f"A rerun: JAX's persistent compilation cache held {cache['entries_at_start']:,} entries at the start, for "
             "ours and brax's alike, so the compile times below are mostly loading.",

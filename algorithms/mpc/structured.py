@@ -677,9 +677,11 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
     primal_free, s_free = ops.free(y_soft)
     # held_tol: how far a row held at its bound may sit from it (the solve's rounding); tol: how far a free row may
     # cross its bound; dual_tol: how far a multiplier may push the wrong way (see POLISH_TOL).
-    held_tol = float(np.sqrt(np.finfo(dtype).eps)) if settings.polish_tol is None else settings.polish_tol
-    tol = min(held_tol, POLISH_TOL) if settings.polish_tol is None else settings.polish_tol
-    dual_tol = min(held_tol, POLISH_DUAL_TOL) if settings.polish_tol is None else settings.polish_tol
+    if settings.polish_tol is None:
+        held_tol = float(np.sqrt(np.finfo(dtype).eps))
+        tol, dual_tol = min(held_tol, POLISH_TOL), min(held_tol, POLISH_DUAL_TOL)
+    else:
+        held_tol = tol = dual_tol = settings.polish_tol
     k = min(n, p)
 
     def active_sets(s, y):
