@@ -30,7 +30,7 @@ from scg_algorithms.rl.envs import (
 from scg_algorithms.rl.normalization import RunningStats, init_stats, normalize, update_stats
 from scg_algorithms.rl.policy import load_policy, trained_system
 from scg_algorithms.rl.replay import ReplayBuffer
-from scg_algorithms.rl.training import TrainingInterrupted, run_training
+from scg_algorithms.rl.training import TrainingInterrupted, init_while_compiling, run_training
 from scg_algorithms.sac import make_learner as sac_make_learner
 from tests.rl_helpers import tiny_ppo
 
@@ -282,6 +282,21 @@ def test_resumed_training_is_bit_identical_to_an_uninterrupted_run(resume_runs):
     drop_time = lambda rows: [row[:2] + row[3:] for row in rows]  # noqa: E731
     assert drop_time(whole_rows) == drop_time(split_rows)
     assert (whole_dir / "learning_curve.png").stat().st_size > 0
+
+
+def test_init_compiled_beside_the_loop_is_the_plain_jitted_init(resume_runs):
+    """run_training's start: the init compiled on a worker thread, its shapes handed out first, then its state."""
+    env, params, key, learner, *_ = resume_runs
+    shapes, finish = init_while_compiling(learner.init, key, params)
+    state, expected = finish(), jax.jit(learner.init)(key, params)
+    assert jax.tree.structure(shapes) == jax.tree.structure(state) == jax.tree.structure(expected)
+
+    def data(leaf):
+        return jax.random.key_data(leaf) if jnp.issubdtype(leaf.dtype, jax.dtypes.prng_key) else leaf
+
+    for shape, got, want in zip(jax.tree.leaves(shapes), jax.tree.leaves(state), jax.tree.leaves(expected)):
+        assert (shape.shape, shape.dtype) == (got.shape, got.dtype) == (want.shape, want.dtype)
+        np.testing.assert_array_equal(data(got), data(want))
 
 
 def test_resume_with_another_config_is_refused(resume_runs, tmp_path):
