@@ -294,7 +294,8 @@ def test_init_compiled_beside_the_loop_is_the_plain_jitted_init(resume_runs):
     def data(leaf):
         return jax.random.key_data(leaf) if jnp.issubdtype(leaf.dtype, jax.dtypes.prng_key) else leaf
 
-    for shape, got, want in zip(jax.tree.leaves(shapes), jax.tree.leaves(state), jax.tree.leaves(expected)):
+    leaves = zip(jax.tree.leaves(shapes), jax.tree.leaves(state), jax.tree.leaves(expected), strict=True)
+    for shape, got, want in leaves:
         assert (shape.shape, shape.dtype) == (got.shape, got.dtype) == (want.shape, want.dtype)
         np.testing.assert_array_equal(data(got), data(want))
 
