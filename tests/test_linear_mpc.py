@@ -311,6 +311,20 @@ def test_the_polish_refuses_a_wrong_sign_multiplier_and_a_crossed_free_row_in_fl
     # the resolution (3.5e-4), took a plan that held a row with a multiplier of the wrong sign (2D quadrotor: first
     # inputs 2.4e-3, 3.0e-3 and 1.3e-3 N from qpOASES's) or let a free row cross the 1D quadrotor's ceiling by
     # 1.35e-4 half-widths (1.1e-3 N). With POLISH_TOL and POLISH_DUAL_TOL the next round finds qpOASES's set.
+    _converged_with_qpoases_first_inputs(system, with_state, picked)
+
+
+def test_where_the_polish_rounds_cycle_the_dual_active_set_method_finds_qpoases_plan():
+    # States 794 and 798 of the benchmark's 1,000 on the 2D quadrotor with its position box: the ADMM stops at its
+    # 1,000-iteration cap, and the polish's rounds go round (on 794: a set of 23 rows that depend on each other, whose
+    # solve gives no set, then 17 rows, then none again), so the first inputs were 0.17 N and 1.3e-3 N from
+    # qpOASES's. The dual active-set method (admm_dual_active_set_steps, 30) takes 20 and 1 steps from the ADMM's set.
+    _converged_with_qpoases_first_inputs("quadrotor_2d", True, [794, 798])
+
+
+def _converged_with_qpoases_first_inputs(system, with_state, picked, atol=1e-4):
+    """The default linear MPC on the benchmark's states ``picked`` (of cases.random_states' 1,000) converges to
+    qpOASES's first inputs within ``atol`` (N)."""
     env, params = cases.make_case_env(system, with_state=with_state)
     reference = Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
     case = cases.CASES[system]
@@ -324,7 +338,7 @@ def test_the_polish_refuses_a_wrong_sign_multiplier_and_a_crossed_free_row_in_fl
     solved = [casadi_mpc.act({}, x, k, reference) for k, x in zip(steps, states, strict=True)]
     assert all(info["success"] for _, info in solved)
     np.testing.assert_array_equal(np.asarray(ctrl_state.status), structured.CONVERGED)
-    np.testing.assert_allclose(np.asarray(u_jax), np.array([u for u, _ in solved]), atol=1e-4)
+    np.testing.assert_allclose(np.asarray(u_jax), np.array([u for u, _ in solved]), atol=atol)
 
 
 def test_without_active_constraints_the_first_input_is_the_lqr_input(cartpole):

@@ -3,6 +3,8 @@ solution of an unconstrained LQ problem, a hand-solved KKT system with one activ
 QPs with state and general rows, soft rows, an infeasible problem's status, warm starts, determinism and no
 retracing."""
 
+import itertools
+
 import casadi as cs
 import jax
 import jax.numpy as jnp
@@ -310,6 +312,8 @@ def test_bad_layouts_and_settings_name_the_field():
         S.Layout(horizon=2, nx=2, nu=1, slack="per_row")
     with pytest.raises(ValueError, match=r"Settings\.alpha"):
         S.Settings(alpha=2.0)
+    with pytest.raises(ValueError, match=r"Settings\.dual_active_set_steps: must be >= 0"):
+        S.Settings(dual_active_set_steps=-1)
     layout = S.Layout(horizon=2, nx=2, nu=1)
     qp = _qp(layout, *DOUBLE_INTEGRATOR, np.eye(2), np.zeros((1, 1)))
     with pytest.raises(ValueError, match=r"template\.R must be positive definite"):
@@ -400,3 +404,77 @@ def test_the_polish_of_soft_rows_gives_the_exact_solution_where_no_soft_row_is_v
                 np.testing.assert_array_equal(np.asarray(sols.status), S.CONVERGED)
                 assert np.all(np.asarray(sols.slack) == 0.0)
     assert errors[True] <= 1e-8 and errors[False] >= 1e-4, errors
+
+
+def _brute_force_qp(H, g, G, lo, hi):
+    """The minimiser of 1/2 v'Hv + g'v subject to lo <= Gv <= hi and its multipliers, by trying every active set
+    (each row free, at its lower or at its upper bound) and keeping the one that meets the KKT conditions."""
+    p = G.shape[0]
+    for sides in itertools.product((0, -1, 1), repeat=p):
+        sides = np.array(sides)
+        held = np.flatnonzero(sides)
+        A = G[held]
+        K = np.block([[H, A.T], [A, np.zeros((len(held), len(held)))]])
+        rhs = np.concatenate([-g, np.where(sides[held] > 0, hi[held], lo[held])])
+        try:
+            solution = np.linalg.solve(K, rhs)
+        except np.linalg.LinAlgError:
+            continue
+        v, lam = solution[: len(g)], solution[len(g) :]
+        rows = G @ v
+        if np.all(rows >= lo - 1e-10) and np.all(rows <= hi + 1e-10) and np.all(lam * sides[held] >= -1e-10):
+            y = np.zeros(p)
+            y[held] = lam
+            return v, y
+    raise AssertionError("no active set meets the KKT conditions")
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_dual_active_set_method_finds_the_brute_force_minimiser_from_any_start(seed):
+    # Goldfarb and Idnani's method (the polish's fallback) on random strictly convex QPs with 4 variables and 7 rows
+    # (a box on each variable and 3 general rows), pushed against their bounds; more rows than variables, so the set
+    # is gathered. Its start is the empty set, a set with wrong-signed rows to drop, or more rows than it can hold.
+    rng = np.random.default_rng(seed)
+    n, p = 4, 7
+    M = rng.normal(size=(n, n))
+    H = M @ M.T + 0.1 * np.eye(n)
+    g = 3.0 * rng.normal(size=n)
+    G = np.vstack([np.eye(n), rng.normal(size=(p - n, n))])
+    lo, hi = -np.ones(p), np.ones(p)
+    v_expected, y_expected = _brute_force_qp(H, g, G, lo, hi)
+    with jax.enable_x64(True):
+        inv_G, inv_g = (jnp.asarray(a) for a in (np.linalg.solve(H, G.T), np.linalg.solve(H, g)))
+        G_ = jnp.asarray(G)
+
+        def free(y):
+            v = -(inv_G @ y + inv_g)
+            return v, G_ @ v
+
+        def correct(v, index, lam):
+            v = v - inv_G[:, index] @ lam
+            return v, G_ @ v
+
+        ops = S._PolishOps(free, lambda index: G_[index] @ inv_G[:, index], correct)
+        primal_free, s_free = free(jnp.zeros(p))
+        starts = {"empty": np.zeros(p), "wrong signs": -np.sign(y_expected), "too many": np.ones(p)}
+        for name, start_side in starts.items():
+            solve = jax.jit(
+                lambda start: S._dual_active_set(
+                    ops,
+                    jnp.ones(p, bool),
+                    jnp.asarray(lo),
+                    jnp.asarray(hi),
+                    primal_free,
+                    s_free,
+                    start,
+                    k=n,
+                    max_steps=30,
+                    tol=1e-12,
+                    skip=jnp.asarray(False),
+                )  # fmt: skip
+            )
+            v, rows, y = (np.asarray(a) for a in solve(jnp.asarray(start_side, jnp.int32)))
+            np.testing.assert_allclose(v, v_expected, atol=1e-10, err_msg=name)
+            np.testing.assert_allclose(y, y_expected, atol=1e-9, err_msg=name)
+            np.testing.assert_allclose(rows, G @ v_expected, atol=1e-10, err_msg=name)
+            np.testing.assert_allclose(H @ v + g + G.T @ y, 0.0, atol=1e-9, err_msg=name)

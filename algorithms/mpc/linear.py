@@ -115,6 +115,11 @@ class Options(setup.MPCOptions):
         "admm: active-set polish rounds after the ADMM, at most (0: none; cheaper per step, less accurate at few "
         "iterations; a batch stops once every copy has an accepted round)",
     )
+    admm_dual_active_set_steps: int = option(
+        30,
+        "admm: where the ADMM stopped at admm_max_iter and no polish round was accepted, at most this many steps "
+        "of a dual active-set method (Goldfarb and Idnani), which cannot cycle where the rounds do (0: none)",
+    )
     admm_adaptive_rho: bool = option(
         True,
         "admm: adapt the step size at the checks; false: keep the prepared one, whose products are folded once "
@@ -141,7 +146,7 @@ class Options(setup.MPCOptions):
                 raise ValueError(f"{path}.{name}: must be a positive integer, got {getattr(self, name)!r}")
         for name in ("solver_tol", "feasibility_tol", "admm_rho_scale"):
             positive(f"{path}.{name}", getattr(self, name))
-        for name in ("slack_l1", "slack_l2", "admm_tol", "admm_polish_rounds"):
+        for name in ("slack_l1", "slack_l2", "admm_tol", "admm_polish_rounds", "admm_dual_active_set_steps"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
         if self.soft_constraints and self.slack_l1 == 0 and self.slack_l2 == 0:
@@ -398,6 +403,7 @@ def structured_mpc(problem: Problem) -> StructuredMPC:
         eps_abs=opts.admm_tol,
         eps_rel=opts.admm_tol,
         polish_rounds=opts.admm_polish_rounds,
+        dual_active_set_steps=opts.admm_dual_active_set_steps,
         adaptive_rho=opts.admm_adaptive_rho,
         rho_scale=opts.admm_rho_scale,
     )

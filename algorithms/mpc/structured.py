@@ -97,6 +97,8 @@ DEFAULT_RHO = 1e-3  # the initial step size of ``solve`` when neither the settin
 # 1.35e-4 half-widths (1.1e-3 N off).
 POLISH_TOL = 1e-5
 POLISH_DUAL_TOL = 2e-6
+# Solves that drop the wrong-signed rows from the polish's last set before the dual active-set method starts there.
+RESTORE_ROUNDS = 3
 
 
 # --------------------------------------------------------------------------------------------- problem
@@ -224,6 +226,10 @@ class Settings:
             accepted only if their multipliers stay within the violation's price (per-stage slack, ``l2 = 0``: an
             exact penalty): the soft problem's exact solution wherever no soft row is violated at it (a plan exists),
             the ADMM's where one is. ``False``: the soft rows keep the ADMM's multipliers (and its accuracy).
+        dual_active_set_steps: where no polish round is accepted, at most this many steps of Goldfarb and
+            Idnani's dual active-set method on the hard rows (``_dual_active_set``; 0: none). The rounds can
+            cycle between active sets when the ADMM stopped far from the solution (a degenerate state bound); this
+            method cannot cycle, and each step costs about one round. Not with ``polish_soft_rows``.
     """
 
     max_iterations: int = 200
@@ -241,6 +247,7 @@ class Settings:
     polish_rounds: int = 3
     polish_tol: float | None = None
     polish_soft_rows: bool = False
+    dual_active_set_steps: int = 0
 
     def __post_init__(self):
         if self.max_iterations < 1 or self.check_every < 1:
@@ -255,6 +262,8 @@ class Settings:
                 raise ValueError(f"Settings.{name}: must be positive, got {value!r}")
         if self.polish_rounds < 0:
             raise ValueError(f"Settings.polish_rounds: must be >= 0, got {self.polish_rounds!r}")
+        if self.dual_active_set_steps < 0:
+            raise ValueError(f"Settings.dual_active_set_steps: must be >= 0, got {self.dual_active_set_steps!r}")
         if self.polish_tol is not None and self.polish_tol < 0:
             raise ValueError(f"Settings.polish_tol: must be >= 0, got {self.polish_tol!r}")
         for name in ("eps_abs", "eps_rel", "eps_infeasible"):
@@ -726,6 +735,17 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
         lambda carry: (carry[0] + 1, round_(carry[1])),
         (jnp.zeros((), jnp.int32), init),
     )
+    if settings.dual_active_set_steps and not exact_soft:
+        # It starts from the ADMM's set, where the rounds started (their last set may be empty: see the method).
+        upper, lower = active_sets(result.s, result.y)
+        start_side = jnp.where(upper, 1, jnp.where(lower, -1, 0))
+        fallback = _dual_active_set(
+            ops, hard, lo, hi, primal_free, s_free, start_side, k, settings.dual_active_set_steps, tol,
+            skip=ok | (result.status != MAX_ITERATIONS),  # converged, or certified infeasible: nothing to find
+        )  # fmt: skip
+        good = ~ok & acceptable(*fallback)
+        primal, s, y = jax.tree.map(lambda a, b: jnp.where(good, a, b), fallback, (primal, s, y))
+        ok = ok | good
     ok = ok & (result.status != NUMERICAL)
     # The polished rows at their polished values (within tol of their bounds), the others at the ADMM's.
     s_final = jnp.where(hard, jnp.clip(s, lo, hi), result.s)
@@ -739,6 +759,127 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
         status=jnp.where(ok, CONVERGED, result.status).astype(jnp.int32),
         violation=pick(violation, result.violation),
     )
+
+
+def _dual_active_set(ops: _PolishOps, hard, lo, hi, primal_free, s_free, start_side, k: int, max_steps: int, tol, skip):
+    """Goldfarb and Idnani's dual active-set method on the rows ``hard`` (one copy): ``(primal, s, y)``.
+
+    The polish's fallback where its rounds found no acceptable plan after an ADMM that stopped at its cap: far from
+    the solution the rounds can go round (on a state box of the 2D quadrotor: 23 rows that depend on each other,
+    whose solve gives no set, then 17 rows, then none again). This method keeps every multiplier of the right
+    sign: each step takes the most violated row ``j`` and raises its force until ``j`` reaches its bound (it joins
+    the set) or a held row's multiplier reaches zero first (that row leaves, and the next step takes ``j`` up
+    again). The objective rises at every step, so it cannot cycle. The set's equations are the polish's Schur
+    system: one ``(k, k)`` Cholesky per step.
+
+    It starts from ``start_side`` (+1: the row held at its upper bound, -1: at its lower, 0: free), less the rows
+    whose multipliers come out with the wrong sign (at most ``RESTORE_ROUNDS`` solves), or from the empty set when
+    that does not settle or the set holds more than ``k`` rows. It stops when no free row is violated by more than
+    half of ``tol``, after ``max_steps`` steps, or when ``j`` cannot be met (it depends on the set and no held
+    multiplier can give way: the rows are infeasible); the caller checks the result as it checks a round's.
+    ``skip``: the copy needs none (the loops then do not run for it; under ``vmap``, they run while any copy of the
+    batch needs them).
+
+    Goldfarb, D., and Idnani, A. (1983). A numerically stable dual method for solving strictly convex quadratic
+    programs. Mathematical Programming 27, 1-33.
+    """
+    p = s_free.shape[0]
+    dtype = s_free.dtype
+    rows = jnp.arange(p)
+    # A row whose Schur complement on the set is below this share of its diagonal depends on the set: in float32
+    # its force would be round-off.
+    dependent = float(np.sqrt(np.finfo(dtype).eps))
+
+    def step(carry):
+        side, lam, j, sigma, _, _, steps, (_, s) = carry
+        held = side != 0
+        # The set first, then the row being added, then padding: the first k take part (all when they fit).
+        order = jnp.where(held, 0, jnp.where(rows == j, 1, 2)) * p + rows
+        index = rows if k == p else jnp.argsort(order)[:k]
+        S = ops.schur(index)
+        in_set = held[index].astype(dtype)
+        e_j = (index == j).astype(dtype)
+        # d: the held multipliers' change per unit of j's force, which keeps the held rows at their bounds.
+        M = in_set[:, None] * S * in_set[None, :] + jnp.diag(1.0 - in_set)
+        column = S @ e_j
+        d = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(M), True), -sigma * in_set * column) * in_set
+        # c: how far j moves towards its bound per unit of force (its Schur complement on the set).
+        c = e_j @ column + sigma * (column @ d)
+        excess = sigma * (s[j] - jnp.where(sigma > 0, hi[j], lo[j]))  # j's violation (its bound is finite)
+        full = jnp.where(c > dependent * (e_j @ column), jnp.maximum(excess, 0.0) / c, jnp.inf)
+        lam_index = lam[index]
+        releasing = (in_set > 0) & (lam_index * d < 0)
+        partial_at = jnp.where(releasing, -lam_index / jnp.where(releasing, d, 1.0), jnp.inf)
+        partial = jnp.min(partial_at)
+        t = jnp.minimum(full, partial)
+        stuck = ~jnp.isfinite(t) | (jnp.sum(held) >= k)  # j cannot be met
+        t = jnp.where(stuck, 0.0, t)
+        lam = lam.at[index].add(t * (d + sigma * e_j))
+        joins = ~stuck & (full <= partial)
+        leaving = index[jnp.argmin(partial_at)]
+        leaves = ~stuck & ~joins
+        lam = jnp.where(leaves & (rows == leaving), 0.0, lam)
+        side = jnp.where(leaves & (rows == leaving), 0, side)
+        side = jnp.where(joins & (rows == j), sigma.astype(side.dtype), side)
+        # The rows held now, and j, are among index's: the new plan needs no new gather.
+        plan = ops.correct(primal_free, index, lam[index])
+        return pick(side, lam, jnp.where(joins, -1, j), sigma, stuck, steps + 1, *plan)
+
+    def solution(side, lam):
+        held = (side != 0) | (lam != 0)
+        order = jnp.where(held, 0, 1) * p + rows
+        index = rows if k == p else jnp.argsort(order)[:k]
+        return ops.correct(primal_free, index, lam[index])
+
+    def pick(side, lam, j, sigma, stuck, steps, primal, s):
+        above, below = s - hi, lo - s
+        violation = jnp.where(hard & (side == 0), jnp.maximum(above, below), -jnp.inf)
+        worst = jnp.argmax(violation)
+        new_j = jnp.where(j >= 0, j, worst)
+        new_sigma = jnp.where(j >= 0, sigma, jnp.where(above[worst] >= below[worst], 1.0, -1.0).astype(dtype))
+        met = (j < 0) & (violation[worst] <= 0.5 * tol)
+        return side, lam, new_j, new_sigma, met, stuck, steps, (primal, s)
+
+    def equality_solution(side):
+        # The minimiser with the rows of side held at their bounds (the polish's round): multipliers (p,).
+        held = side != 0
+        index = rows if k == p else jnp.argsort(jnp.where(held, 0, 1) * p + rows)[:k]
+        in_set = held[index].astype(dtype)
+        target = jnp.where(side > 0, hi, jnp.where(side < 0, lo, 0.0))[index]
+        M = in_set[:, None] * ops.schur(index) * in_set[None, :] + jnp.diag(1.0 - in_set)
+        lam = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(M), True), in_set * (s_free[index] - target)) * in_set
+        return jnp.zeros(p, dtype).at[index].set(lam)
+
+    def restore(carry):
+        side, _, rounds, _ = carry
+        lam = equality_solution(side)
+        wrong = (side != 0) & (lam * side < 0)
+        return jnp.where(wrong, 0, side), jnp.where(wrong, 0.0, lam), rounds + 1, jnp.any(wrong)
+
+    def run():
+        # The start: the ADMM's set, less the rows whose multipliers have the wrong sign (a few solves); the empty
+        # set (the minimiser without rows) if that does not settle.
+        zero = jnp.zeros((), jnp.int32)
+        side = jnp.where(jnp.sum(start_side != 0) <= k, start_side, 0).astype(jnp.int32)
+        side, lam, _, unsettled = lax.while_loop(
+            lambda c: ~skip & c[3] & (c[2] < RESTORE_ROUNDS),
+            restore,
+            (side, jnp.zeros(p, dtype), zero, jnp.any(side != 0)),
+        )
+        cold = unsettled | ~jnp.all(jnp.isfinite(lam))
+        side, lam = jnp.where(cold, 0, side), jnp.where(cold, 0.0, lam)
+        start = pick(side, lam, -1 + zero, jnp.ones((), dtype), jnp.zeros((), bool), zero, *solution(side, lam))
+        side, lam, _, _, _, _, _, (primal, s) = lax.while_loop(
+            lambda c: ~skip & ~c[4] & ~c[5] & (c[6] < max_steps), step, start
+        )
+        return primal, s, lam
+
+    # One pass at most, not lax.cond: under vmap a cond computes both branches for every copy, this loop's body runs
+    # only when some copy of the batch needs the method (the rest keep the minimiser without rows, unused).
+    _, out = lax.while_loop(
+        lambda c: c[0], lambda c: (jnp.zeros((), bool), run()), (~skip, (primal_free, s_free, jnp.zeros(p, dtype)))
+    )
+    return out
 
 
 def _start(data: _Scaled, warm: Warm | None, settings: Settings, rho0):
