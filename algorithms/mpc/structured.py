@@ -62,6 +62,10 @@ hard rows (``|G^T dy|_inf <= eps_infeasible |dy|_inf`` and ``high^T dy+ + low^T 
 |dy|_inf``), and OSQP's step-size rule ``t <- t sqrt(relative primal residual / relative dual residual)``. Under
 ``vmap`` the while loop runs until its slowest copy stops, and a copy that stopped keeps its result;
 ``eps_abs = eps_rel = 0`` runs every solve to the cap (no copy waits for another, the fastest batched setting).
+Then at most ``polish_rounds`` rounds of the active-set polish (``_polish``, with its acceptance tolerances), and,
+for a copy whose ADMM stopped at the cap and whose rounds found no acceptable plan, at most
+``dual_active_set_steps`` steps of a dual active-set method (``_dual_active_set``); both are while loops that stop
+once every copy of the batch is done.
 
 **Solution.** The inputs are taken from the projected ``s`` (inside their box whatever the iteration count), the
 states from ``v~`` through the model. ``status``: ``CONVERGED`` (0); ``MAX_ITERATIONS`` (1: the last iterate, with
@@ -97,7 +101,7 @@ DEFAULT_RHO = 1e-3  # the initial step size of ``solve`` when neither the settin
 # 1.35e-4 half-widths (1.1e-3 N off).
 POLISH_TOL = 1e-5
 POLISH_DUAL_TOL = 2e-6
-# Solves that drop the wrong-signed rows from the polish's last set before the dual active-set method starts there.
+# Solves that drop the wrong-signed rows from the ADMM's set before the dual active-set method starts there.
 RESTORE_ROUNDS = 3
 
 
@@ -226,10 +230,11 @@ class Settings:
             accepted only if their multipliers stay within the violation's price (per-stage slack, ``l2 = 0``: an
             exact penalty): the soft problem's exact solution wherever no soft row is violated at it (a plan exists),
             the ADMM's where one is. ``False``: the soft rows keep the ADMM's multipliers (and its accuracy).
-        dual_active_set_steps: where no polish round is accepted, at most this many steps of Goldfarb and
-            Idnani's dual active-set method on the hard rows (``_dual_active_set``; 0: none). The rounds can
-            cycle between active sets when the ADMM stopped far from the solution (a degenerate state bound); this
-            method cannot cycle, and each step costs about one round. Not with ``polish_soft_rows``.
+        dual_active_set_steps: where the ADMM stopped at its cap and no polish round was accepted, at most this
+            many steps of Goldfarb and Idnani's dual active-set method on the hard rows (``_dual_active_set``; 0:
+            none). The rounds can go round between active sets when the ADMM stopped far from the solution (a
+            degenerate state bound); this method cannot cycle, and a step costs about one round. Not with
+            ``polish_soft_rows``.
     """
 
     max_iterations: int = 200
