@@ -663,6 +663,19 @@ class _PolishOps(NamedTuple):
     correct: Any
 
 
+def _rows_first(priority, k: int):
+    """The indices of the rows ordered by ``priority`` (0 first, then 1, ...; ties by index), the first ``k``."""
+    p = priority.shape[0]
+    return jnp.argsort(priority * p + jnp.arange(p))[:k]
+
+
+def _solve_held(S, held, rhs):
+    """``x`` (k,) with ``S_HH x_H = rhs_H`` on the rows ``held`` ((k,), 1.0 or 0.0) of the Schur matrix ``S`` (k, k)
+    and ``x = 0`` elsewhere (identity rows decouple the rows not held): one small Cholesky."""
+    M = held[:, None] * S * held[None, :] + jnp.diag(1.0 - held)
+    return jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(M), True), held * rhs) * held
+
+
 def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, settings: Settings, keep=None) -> _Result:
     """Refine the ADMM's plan by a primal-dual active-set method on the hard rows (OSQP's polish, iterated).
 
@@ -720,12 +733,9 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
         active = upper | lower
         # The active rows first (by index), then the others as padding; at most k of them take part (all of them
         # when they fit: no sort, no gathers).
-        index = slice(None) if k == p else jnp.argsort(jnp.where(active, 0, 1) * p + jnp.arange(p))[:k]
+        index = slice(None) if k == p else _rows_first(jnp.where(active, 0, 1), k)
         target = jnp.where(upper, hi, lo)[index]
-        mask = active[index].astype(dtype)
-        # The rows not in the set have lambda = 0: identity rows decouple them.
-        M = mask[:, None] * ops.schur(index) * mask[None, :] + jnp.diag(1.0 - mask)
-        lam = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(M), True), mask * (s_free[index] - target)) * mask
+        lam = _solve_held(ops.schur(index), active[index].astype(dtype), s_free[index] - target)  # 0 off the set
         primal, s = ops.correct(primal_free, index, lam)
         y = jnp.zeros(p, dtype).at[index].set(lam)
         good = (jnp.sum(active) <= k) & acceptable(primal, s, y) & ~accepted
@@ -799,15 +809,13 @@ def _dual_active_set(ops: _PolishOps, hard, lo, hi, primal_free, s_free, start_s
         side, lam, j, sigma, _, _, steps, (_, s) = carry
         held = side != 0
         # The set first, then the row being added, then padding: the first k take part (all when they fit).
-        order = jnp.where(held, 0, jnp.where(rows == j, 1, 2)) * p + rows
-        index = rows if k == p else jnp.argsort(order)[:k]
+        index = rows if k == p else _rows_first(jnp.where(held, 0, jnp.where(rows == j, 1, 2)), k)
         S = ops.schur(index)
         in_set = held[index].astype(dtype)
         e_j = (index == j).astype(dtype)
         # d: the held multipliers' change per unit of j's force, which keeps the held rows at their bounds.
-        M = in_set[:, None] * S * in_set[None, :] + jnp.diag(1.0 - in_set)
         column = S @ e_j
-        d = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(M), True), -sigma * in_set * column) * in_set
+        d = _solve_held(S, in_set, -sigma * column)
         # c: how far j moves towards its bound per unit of force (its Schur complement on the set).
         c = e_j @ column + sigma * (column @ d)
         excess = sigma * (s[j] - jnp.where(sigma > 0, hi[j], lo[j]))  # j's violation (its bound is finite)
@@ -832,8 +840,7 @@ def _dual_active_set(ops: _PolishOps, hard, lo, hi, primal_free, s_free, start_s
 
     def solution(side, lam):
         held = (side != 0) | (lam != 0)
-        order = jnp.where(held, 0, 1) * p + rows
-        index = rows if k == p else jnp.argsort(order)[:k]
+        index = rows if k == p else _rows_first(jnp.where(held, 0, 1), k)
         return ops.correct(primal_free, index, lam[index])
 
     def pick(side, lam, j, sigma, stuck, steps, primal, s):
@@ -848,11 +855,9 @@ def _dual_active_set(ops: _PolishOps, hard, lo, hi, primal_free, s_free, start_s
     def equality_solution(side):
         # The minimiser with the rows of side held at their bounds (the polish's round): multipliers (p,).
         held = side != 0
-        index = rows if k == p else jnp.argsort(jnp.where(held, 0, 1) * p + rows)[:k]
-        in_set = held[index].astype(dtype)
+        index = rows if k == p else _rows_first(jnp.where(held, 0, 1), k)
         target = jnp.where(side > 0, hi, jnp.where(side < 0, lo, 0.0))[index]
-        M = in_set[:, None] * ops.schur(index) * in_set[None, :] + jnp.diag(1.0 - in_set)
-        lam = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(M), True), in_set * (s_free[index] - target)) * in_set
+        lam = _solve_held(ops.schur(index), held[index].astype(dtype), s_free[index] - target)
         return jnp.zeros(p, dtype).at[index].set(lam)
 
     def restore(carry):
