@@ -64,6 +64,7 @@ from scg_algorithms.base import Reference
 from scg_algorithms.evaluation import evaluate
 from scg_algorithms.gp_mpc.controller import learn
 from scg_algorithms.mpc.cases import CASES, make_case_env, random_states
+from scg_algorithms.mpc.linear import Options as LinearOptions
 from scg_algorithms.mpc.linear import make_linear_mpc, make_linear_mpc_casadi
 from scg_algorithms.mpc.nonlinear import make_nonlinear_mpc
 from scg_jax.config import load_config, make_from_config
@@ -545,6 +546,9 @@ def measure_rti(name: str, args) -> list[dict]:
     return rows
 
 
+LINEAR = LinearOptions()  # the linear MPC's defaults, which the page's "admm" columns run
+
+
 def write_solvers_markdown(path, qp_rows: list[dict], rti_rows: list[dict], meta: dict, gp_row: dict) -> None:
     batches = meta["config"]["batches"]
     columns = ["system", "constraints", "u0 max error vs qpOASES (N)", "feasible / states", "u0 at a bound"]
@@ -599,8 +603,10 @@ def write_solvers_markdown(path, qp_rows: list[dict], rti_rows: list[dict], meta
     notes = f"""
 Linear MPC, horizon {meta["config"]["horizon"]}, float32, random states around the reference (the parity tests'
 sets; u0 error over the states qpOASES solves), each solved cold. admm: `scg_algorithms.mpc.structured` with linear
-MPC's defaults (tolerance 1e-5, at most 1,000 iterations and 6 rounds of active-set polish; each batch runs until
-its slowest copy converges); qpax: 40 interior-point iterations; qpOASES and OSQP: `linear_mpc_casadi`, one problem
+MPC's defaults (tolerance {LINEAR.admm_tol:g}, at most {LINEAR.admm_max_iter:,} iterations and
+{LINEAR.admm_polish_rounds} rounds of active-set polish, then, where a copy stopped at the cap and no round was
+accepted, at most {LINEAR.admm_dual_active_set_steps} steps of a dual active-set method; each batch runs until its
+slowest copy is done); qpax: 40 interior-point iterations; qpOASES and OSQP: `linear_mpc_casadi`, one problem
 at a time on the host. env: one vmapped `env.step`. A copy whose iterate still violates a row by more than
 `feasibility_tol` (1e-3) after its iterations falls back to the clipped LQR input, which is where a throughput
 setting's largest errors come from. Throughput settings: {settings}. Load average at the start and end:
