@@ -4,12 +4,15 @@ and the page's sections. No learning run here (the script itself is the measurem
 import dataclasses
 import importlib.util
 import inspect
+import re
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+ROOT = Path(__file__).resolve().parents[1]
+BENCHMARKS = ROOT / "benchmarks"
 
 
 @pytest.fixture(scope="module")
@@ -233,3 +236,62 @@ def test_the_threshold_is_a_factor_of_lqrs_rmse_or_a_given_target_and_the_labels
     assert not bench._meets({"rmse": 0.6, "crash_rate": 0.03125}, 0.619)  # the default bar: no crash
     with pytest.raises(SystemExit):
         bench.main(["--target-rmse", "-1"])
+
+
+def _save_mlp(path, activation, layers):
+    arrays = {}
+    for i, (weight, bias) in enumerate(layers):
+        arrays[f"weight_{i}"], arrays[f"bias_{i}"] = np.asarray(weight), np.asarray(bias)
+    np.savez(path, activation=activation, **arrays)
+    return path
+
+
+def test_a_reference_policy_file_is_torchs_mlp_with_its_activation_and_a_linear_last_layer(bench, tmp_path):
+    W0, b0 = np.array([[1.0, -2.0], [0.5, 1.0], [-1.0, 0.0]]), np.array([0.1, -3.0, 0.2])
+    W1, b1 = np.array([[2.0, -1.0, 1.0]]), np.array([0.5])
+    obs = np.array([0.3, 0.4])
+    # Worked by hand: W0 obs + b0 = (-0.4, -2.45, -0.1); leaky_relu (slope 0.01) gives (-0.004, -0.0245, -0.001);
+    # W1 h + b1 = -0.008 + 0.0245 - 0.001 + 0.5 = 0.5155. With tanh the same layers give tanh's values.
+    name, policy = bench.load_reference_policy(_save_mlp(tmp_path / "orig.npz", "leaky_relu", [(W0, b0), (W1, b1)]))
+    assert name == "orig"
+    assert float(policy(obs)[0]) == pytest.approx(0.5155, abs=1e-6)
+    _, policy = bench.load_reference_policy(_save_mlp(tmp_path / "tanh.npz", "tanh", [(W0, b0), (W1, b1)]))
+    assert float(policy(obs)[0]) == pytest.approx(float((W1 @ np.tanh(W0 @ obs + b0))[0] + b1[0]), abs=1e-6)
+    bad = {
+        "activation must be one of": ("sigmoid", [(W0, b0), (W1, b1)]),
+        "weight_1 takes 3 inputs, layer 0 gives 2": ("relu", [(W0[:2], b0[:2]), (W1, b1)]),
+        "weight_0 must be (out, in) with bias_0 (out,)": ("relu", [(W0, b0[:2])]),
+    }
+    for message, (activation, layers) in bad.items():
+        with pytest.raises(SystemExit, match=r"--target-policy: .*" + re.escape(message)):
+            bench.load_reference_policy(_save_mlp(tmp_path / "bad.npz", activation, layers))
+    with pytest.raises(SystemExit, match="--target-policy: .*the MLP has 2 inputs, the env's policy needs 4"):
+        bench.load_reference_policy(tmp_path / "orig.npz", obs_size=4, action_size=1)
+    with pytest.raises(SystemExit, match="--target-policy: .*the MLP has 1 outputs, the env's policy needs 2"):
+        bench.load_reference_policy(tmp_path / "orig.npz", obs_size=2, action_size=2)
+    with pytest.raises(SystemExit, match="--target-policy: cannot read"):
+        bench.load_reference_policy(tmp_path / "missing.npz")
+    with pytest.raises(SystemExit):
+        bench.main(["--target-rmse", "0.6", "--target-policy", str(tmp_path / "orig.npz")])
+
+
+def test_a_reference_policy_holding_lqrs_gain_sets_lqrs_rmse_as_the_bar(bench, tmp_path):
+    from scg_jax.config import load_config, make_from_config
+
+    env, params = make_from_config(load_config(ROOT / "configs" / "cartpole_stabilization.yaml"))
+    K = np.asarray(bench.make_lqr(env, params).info["K"][0])
+    goal, force_max = np.asarray(params.goal), float(params.physics.force_max)
+    # One linear layer: the normalised action a = (u_eq - K (x - goal)) / force_max, u_eq = 0 on the cart-pole.
+    lqr_file = _save_mlp(tmp_path / "lqr_gain.npz", "relu", [(-K / force_max, K @ goal / force_max)])
+    weak_file = _save_mlp(tmp_path / "weak.npz", "relu", [(-0.5 * K / force_max, 0.5 * K @ goal / force_max)])
+    bar = bench.policy_threshold(env, params, bench.jax.random.key(1), 4, [weak_file, lqr_file])
+    assert bar["threshold_rmse"] == pytest.approx(bar["lqr_rmse"], rel=1e-4)
+    assert bar["max_crash_rate"] == bar["lqr_crash_rate"] == 0.0
+    assert [Path(score["policy"]).name for score in bar["reference_policies"]] == ["weak.npz", "lqr_gain.npz"]
+    assert bar["reference_policies"][0]["rmse"] > bar["threshold_rmse"]  # the lowest RMSE is the bar
+    label = bench.threshold_label(bar)
+    assert label.startswith(f"RMSE {bar['threshold_rmse']:.4f} with at most 0.0% crashes (the best of 2 reference")
+    record = {**bench.run_record("train"), "overrides": [], "time_to_threshold": {**bar, "ours": {}, "brax": {}}}
+    assert f"- reference policy `lqr_gain.npz`: RMSE {bar['threshold_rmse']:.4f}, crash rate 0.0%" in bench.section(
+        record
+    )
