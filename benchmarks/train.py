@@ -79,10 +79,41 @@ def _config(cfg, algo: str, **changes):
     return parse_options(config_class, options, f"training.{algo}")
 
 
-def _policy_evaluator(env, params, episodes: int, make_policy, name: str, action_scale: float = 1.0):
+def evaluation_params(env, params, episodes):
+    """``(params, num_episodes, batched)`` of the evaluation episodes ``episodes``: a count of episodes from the env's
+    random starts (``params`` as it is), or an (N, nx) array of initial states, one episode from each (``params``
+    with a leading axis of N, each copy's initial-state distribution pinned to its start: ``--eval-starts``).
+
+    Raises:
+        SystemExit: naming ``--eval-starts``, for starts of the wrong shape or an env whose initial state is drawn
+            from a truncated normal (which cannot be pinned).
+    """
+    if np.ndim(episodes) == 0:
+        return params, int(episodes), False
+    starts = np.asarray(episodes)
+    if starts.ndim != 2 or starts.shape[1] != env.nx or starts.shape[0] < 1 or not np.all(np.isfinite(starts)):
+        raise SystemExit(f"--eval-starts: expected finite initial states of shape (N, {env.nx}), got {starts.shape}")
+    if env.init_state_spec.type == "normal" and env.init_state_spec.truncated:
+        raise SystemExit("--eval-starts: the env's initial state is a truncated normal, which cannot be pinned")
+    starts = jnp.asarray(starts, jnp.asarray(params.init_state.low).dtype)
+    n = starts.shape[0]
+    batched = jax.tree.map(lambda a: jnp.broadcast_to(a, (n, *jnp.shape(a))), params)
+    # Every distribution type then draws the start: uniform [x0, x0], normal x0 + 0 z, choice among (x0,).
+    init = batched.init_state.replace(low=starts, high=starts, mean=starts, std=jnp.zeros_like(starts),
+                                      values=starts[:, None])  # fmt: skip
+    return batched.replace(init_state=init), n, True
+
+
+def _evaluate_controller(env, params, controller, key, episodes):
+    """``evaluate``'s summary of ``controller`` on the evaluation episodes (``evaluation_params``)."""
+    params, n, batched = evaluation_params(env, params, episodes)
+    return evaluate(env, params, controller, key, n, batched_params=batched, measure_time=False).summary
+
+
+def _policy_evaluator(env, params, episodes, make_policy, name: str, action_scale: float = 1.0):
     """``evaluate_fn(policy_params, key) -> Evaluation`` of the deterministic policy ``make_policy(policy_params)``
-    (actions in [-1, 1], times ``action_scale``); compiled once, so evaluating after every chunk of training costs
-    no compile."""
+    (actions in [-1, 1], times ``action_scale``) on the evaluation episodes (``evaluation_params``); compiled once,
+    so evaluating after every chunk of training costs no compile."""
     physics = params.physics
 
     def build(policy_params):
@@ -94,7 +125,8 @@ def _policy_evaluator(env, params, episodes: int, make_policy, name: str, action
         return JaxController(name, lambda key, reference: (), act)
 
     build.__name__ = name
-    evaluate_fn = make_evaluator(env, build, episodes)
+    params, n, batched = evaluation_params(env, params, episodes)
+    evaluate_fn = make_evaluator(env, build, n, batched_params=batched)
     return lambda policy_params, key: evaluate_fn(policy_params, key, params)
 
 
@@ -294,10 +326,10 @@ def load_reference_policy(path, obs_size: int | None = None, action_size: int | 
     return path.stem, policy
 
 
-def policy_threshold(env, params, eval_key, episodes: int, paths) -> dict:
+def policy_threshold(env, params, eval_key, episodes, paths) -> dict:
     """The bar of ``--target-policy``: of the policies in ``paths`` (``load_reference_policy``), the lowest RMSE on
     the evaluation episodes, with no more crashes than that policy had; LQR's figures for the page beside it."""
-    summary = evaluate(env, params, make_lqr(env, params), eval_key, episodes, measure_time=False).summary
+    summary = _evaluate_controller(env, params, make_lqr(env, params), eval_key, episodes)
     scores = []
     for path in paths:
         name, policy = load_reference_policy(path, env.observation_size, env.action_size)
@@ -311,22 +343,33 @@ def policy_threshold(env, params, eval_key, episodes: int, paths) -> dict:
     }  # fmt: skip
 
 
-def lqr_threshold(env, params, eval_key, episodes: int, factor: float, target: float | None = None) -> dict:
+def lqr_threshold(env, params, eval_key, episodes, factor: float, target: float | None = None) -> dict:
     """The bar to reach: an RMSE of ``factor`` times LQR's on the evaluation episodes with no crash, or, when
     ``target`` is given, that RMSE with no more crashes than LQR's (the original's task starts some episodes where
     no controller keeps the cart on the track: at x = -1.9 m moving at -3.5 m/s, braking at 10 N takes 0.68 m)."""
-    summary = evaluate(env, params, make_lqr(env, params), eval_key, episodes, measure_time=False).summary
+    summary = _evaluate_controller(env, params, make_lqr(env, params), eval_key, episodes)
     lqr = {"lqr_rmse": summary["rmse"], "lqr_crash_rate": summary["crash_rate"]}
     if target is None:
         return {**lqr, "threshold_rmse": factor * summary["rmse"], "rmse_factor": factor, "max_crash_rate": 0.0}
     return {**lqr, "threshold_rmse": target, "rmse_factor": None, "max_crash_rate": summary["crash_rate"]}
 
 
-def _threshold(env, params, eval_key, args) -> dict:
-    """The run's bar: ``policy_threshold`` with ``--target-policy``, else ``lqr_threshold``."""
+def _threshold(env, params, eval_key, episodes, args) -> dict:
+    """The run's bar on the evaluation episodes: ``policy_threshold`` with ``--target-policy``, else
+    ``lqr_threshold``."""
     if args.target_policy:
-        return policy_threshold(env, params, eval_key, args.eval_episodes, args.target_policy)
-    return lqr_threshold(env, params, eval_key, args.eval_episodes, args.rmse_factor, args.target_rmse)
+        return policy_threshold(env, params, eval_key, episodes, args.target_policy)
+    return lqr_threshold(env, params, eval_key, episodes, args.rmse_factor, args.target_rmse)
+
+
+def _eval_episodes(args):
+    """The evaluation episodes of the thresholds and races: ``--eval-episodes``, or the starts of ``--eval-starts``."""
+    if args.eval_starts is None:
+        return args.eval_episodes
+    try:
+        return np.load(args.eval_starts)
+    except (OSError, ValueError) as error:
+        raise SystemExit(f"--eval-starts: cannot read {args.eval_starts} as .npy: {error}") from None
 
 
 def threshold_label(threshold: dict) -> str:
@@ -823,6 +866,14 @@ def main(argv=None) -> int:
         "episodes, with no more crashes than it; instead of --rmse-factor",
     )
     parser.add_argument("--eval-episodes", type=int, default=32, help="episodes per evaluation")
+    parser.add_argument(
+        "--eval-starts",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="a .npy of (N, nx) initial states: thresholds and races evaluate one episode from each, instead of "
+        "--eval-episodes random ones (e.g. another suite's evaluation starts)",
+    )
     parser.add_argument("--max-seconds", type=float, default=300.0, help="give up after this much training time")
     parser.add_argument("--chunk-seconds", type=float, default=3.0, help="training time between evaluations")
     parser.add_argument("--brax-evals", type=int, default=20, help="evaluation points of the brax run")
@@ -862,6 +913,7 @@ def main(argv=None) -> int:
         parser.error(f"--target-rmse: must be a positive RMSE, got {args.target_rmse}")
     if args.target_rmse is not None and args.target_policy:
         parser.error("--target-rmse and --target-policy: give one bar, not both")
+    episodes = _eval_episodes(args)  # read before anything runs
     console = Console()
 
     cache = use_compile_cache(args.compile_cache)
@@ -872,6 +924,7 @@ def main(argv=None) -> int:
         "config": str(args.config),
         "compile_cache": cache,
         "overrides": args.set,
+        "eval_starts": None if args.eval_starts is None else str(args.eval_starts),
         "hyperparameters": {
             algo: dataclasses.asdict(_config(cfg, algo)) for algo in dict.fromkeys([*args.algos, *args.ttq_algos])
         },
@@ -883,8 +936,8 @@ def main(argv=None) -> int:
         if args.grid_seeds < 1:
             raise SystemExit("--grid-seeds: must be a positive integer")
         eval_key = jax.random.key(123)
-        threshold = _threshold(env, params, eval_key, args)
-        limits = (threshold["threshold_rmse"], eval_key, args.eval_episodes, args.max_seconds)
+        threshold = _threshold(env, params, eval_key, episodes, args)
+        limits = (threshold["threshold_rmse"], eval_key, episodes, args.max_seconds)
         rows = sac_grid(
             env, params, cfg, args.sac_grid, args.grid_seeds, limits, args.chunk_seconds, console,
             threshold["max_crash_rate"],
@@ -956,11 +1009,11 @@ def main(argv=None) -> int:
 
     if args.threshold:
         eval_key = jax.random.key(123)
-        threshold = _threshold(env, params, eval_key, args)
+        threshold = _threshold(env, params, eval_key, episodes, args)
         console.print(f"threshold: {threshold_label(threshold)}")
         # Every run: the same env, threshold, evaluation episodes and time limit.
         race = (env, params, cfg)
-        limits = (threshold["threshold_rmse"], eval_key, args.eval_episodes, args.max_seconds)
+        limits = (threshold["threshold_rmse"], eval_key, episodes, args.max_seconds)
         ours = {}
         for algo in args.ttq_algos:
             console.print(f"time to threshold: ours, {algo}")
@@ -1001,7 +1054,7 @@ def main(argv=None) -> int:
     args.json.parent.mkdir(parents=True, exist_ok=True)
     write_json(args.json, record)
     console.print(f"wrote {args.json}")
-    heading = section_heading(args.config, cache)
+    heading = section_heading(args.config, cache, args.eval_starts)
     page = merge_section(args.markdown.read_text() if args.markdown.exists() else "", heading, section(record))
     write_atomic(args.markdown, lambda file: file.write(page.encode()))
     console.print(f"wrote {args.markdown} (section {heading})")
@@ -1023,10 +1076,12 @@ def use_compile_cache(folder: Path | None) -> dict | None:
     return {"dir": str(folder), "entries_at_start": entries}
 
 
-def section_heading(config, cache: dict | None) -> str:
+def section_heading(config, cache: dict | None, eval_starts=None) -> str:
     """The page section of a run: its config, and for a run whose compilation cache held entries at the start, apart
-    (a cold run with a cache writes the config's own section)."""
+    (a cold run with a cache writes the config's own section); a run on ``--eval-starts`` apart too."""
     heading = f"`{Path(config).as_posix()}`"
+    if eval_starts is not None:
+        heading += f", starts `{Path(eval_starts).name}`"
     return f"{heading}, warm compilation cache" if _warm(cache) else heading
 
 
@@ -1062,6 +1117,8 @@ def section(record: dict) -> str:
             f"Time to {threshold_label(threshold)}: training wall time, compile included, evaluation excluded.",
             "",
         ]
+        if record.get("eval_starts"):
+            lines += [f"Every evaluation runs one episode from each start in `{Path(record['eval_starts']).name}`.", ""]
         lines += markdown_table(TTQ_COLUMNS, ttq_table_rows(ttq_rows(threshold["ours"], threshold["brax"])))
         lines.append("")
         for score in threshold.get("reference_policies", []):

@@ -172,6 +172,8 @@ def test_a_rerun_with_a_warm_compilation_cache_writes_its_own_section(bench, tmp
     config = Path("configs/cartpole_stabilization.yaml")
     assert bench.section_heading(config, None) == bench.section_heading(config, cold) == f"`{config.as_posix()}`"
     assert bench.section_heading(config, warm) == f"`{config.as_posix()}`, warm compilation cache"
+    heading = bench.section_heading(config, None, Path("/tmp/own_starts.npy"))
+    assert heading == f"`{config.as_posix()}`, starts `own_starts.npy`"
     record = {"overrides": [], "compile_cache": warm}
     monkeypatch.setattr(bench, "machine_line", lambda record: "Measured here.")
     assert "cache held 2 entries at the start, for ours and brax's alike" in bench.section(record)
@@ -295,3 +297,31 @@ def test_a_reference_policy_holding_lqrs_gain_sets_lqrs_rmse_as_the_bar(bench, t
     assert f"- reference policy `lqr_gain.npz`: RMSE {bar['threshold_rmse']:.4f}, crash rate 0.0%" in bench.section(
         record
     )
+
+
+def test_eval_starts_run_one_episode_from_each_given_state_whatever_the_key_draws(bench, tmp_path):
+    from scg_jax.config import load_config, make_from_config
+
+    env, params = make_from_config(load_config(ROOT / "configs" / "cartpole_stabilization.yaml"))
+    starts = np.array([[0.1, 0.0, 0.05, 0.0], [-0.2, 0.1, -0.03, 0.2], [0.0, -0.3, 0.1, -0.1]], np.float32)
+    batched, n, is_batched = bench.evaluation_params(env, params, starts)
+    assert (n, is_batched) == (3, True) and bench.evaluation_params(env, params, 32)[1:] == (32, False)
+    lqr = bench.make_lqr(env, params)
+    runs = [bench.evaluate(env, batched, lqr, bench.jax.random.key(seed), n, batched_params=True, measure_time=False)
+            for seed in (0, 1)]  # fmt: skip
+    for run in runs:  # the key still draws the config's noise, not the start
+        np.testing.assert_array_equal(np.asarray(run.trajectory["x"])[0], starts)
+    assert bench._evaluate_controller(env, params, lqr, bench.jax.random.key(0), starts)["rmse"] == pytest.approx(
+        float(np.mean(runs[0].per_episode["rmse"]))
+    )
+    for bad in (starts[:, :3], starts[:0], np.full((2, 4), np.nan)):
+        with pytest.raises(SystemExit, match=r"--eval-starts: expected finite initial states of shape \(N, 4\)"):
+            bench.evaluation_params(env, params, bad)
+    record = {**bench.run_record("train"), "overrides": [], "eval_starts": str(tmp_path / "own_starts.npy")}
+    record["time_to_threshold"] = {"lqr_rmse": 0.1, "threshold_rmse": 0.15, "rmse_factor": 1.5, "ours": {}, "brax": {}}
+    assert "Every evaluation runs one episode from each start in `own_starts.npy`." in bench.section(record)
+    np.save(tmp_path / "bad.npy", starts)
+    with pytest.raises(SystemExit, match="--eval-starts: cannot read"):
+        bench.main(["--eval-starts", str(tmp_path / "missing.npy"), "--no-split", "--algos", "ppo", "--batches", "8",
+                    "--iterations", "1", "--repeats", "1", "--json", str(tmp_path / "t.json"),
+                    "--markdown", str(tmp_path / "t.md"), "--ttq-algos", "ppo", "--no-brax"])  # fmt: skip
