@@ -856,24 +856,17 @@ def main(argv=None) -> int:
         help="threshold: this RMSE instead of --rmse-factor times LQR's (configs/original_cartpole_ppo.yaml: "
         f"{ORIGINAL_PPO_RMSE}, the original's PPO after {ORIGINAL_PPO_SECONDS:g} s, on its own starts)",
     )
-    parser.add_argument(
-        "--target-policy",
-        type=Path,
-        nargs="+",
-        default=None,
-        metavar="FILE",
-        help="threshold: the lowest RMSE of these policies (.npz MLPs, e.g. the original's PPO) on the same "
-        "episodes, with no more crashes than it; instead of --rmse-factor",
+    target_policy_help = (
+        "threshold: the lowest RMSE of these policies (.npz MLPs, e.g. the original's PPO) on the same episodes, "
+        "with no more crashes than it; instead of --rmse-factor"
     )
+    parser.add_argument("--target-policy", type=Path, nargs="+", metavar="FILE", help=target_policy_help)
     parser.add_argument("--eval-episodes", type=int, default=32, help="episodes per evaluation")
-    parser.add_argument(
-        "--eval-starts",
-        type=Path,
-        default=None,
-        metavar="FILE",
-        help="a .npy of (N, nx) initial states: thresholds and races evaluate one episode from each, instead of "
-        "--eval-episodes random ones (e.g. another suite's evaluation starts)",
+    eval_starts_help = (
+        "a .npy of (N, nx) initial states: thresholds and races evaluate one episode from each, instead of "
+        "--eval-episodes random ones (e.g. another suite's evaluation starts)"
     )
+    parser.add_argument("--eval-starts", type=Path, metavar="FILE", help=eval_starts_help)
     parser.add_argument("--max-seconds", type=float, default=300.0, help="give up after this much training time")
     parser.add_argument("--chunk-seconds", type=float, default=3.0, help="training time between evaluations")
     parser.add_argument("--brax-evals", type=int, default=20, help="evaluation points of the brax run")
