@@ -478,3 +478,13 @@ def test_the_dual_active_set_method_finds_the_brute_force_minimiser_from_any_sta
             np.testing.assert_allclose(y, y_expected, atol=1e-9, err_msg=name)
             np.testing.assert_allclose(rows, G @ v_expected, atol=1e-10, err_msg=name)
             np.testing.assert_allclose(H @ v + g + G.T @ y, 0.0, atol=1e-9, err_msg=name)
+
+
+def test_a_held_solve_ignores_the_right_hand_side_of_free_rows_even_infinite_ones():
+    # Worked by hand: rows 0 and 2 held, S_HH = diag(2, 4), rhs_H = (1, 2) -> x = (0.5, 0, 0.5); row 1 is free and
+    # its right-hand side (a free row's infinite bound, as a one-sided general row has) must not reach the solve.
+    S_k = jnp.array([[2.0, 1.0, 0.0], [1.0, 3.0, 1.0], [0.0, 1.0, 4.0]])
+    held = jnp.array([1.0, 0.0, 1.0])
+    rhs = jnp.array([1.0, jnp.inf, 2.0])
+    for solve in (S._solve_held, jax.jit(S._solve_held)):  # eagerly (op by op) and compiled
+        np.testing.assert_allclose(np.asarray(solve(S_k, held, rhs)), [0.5, 0.0, 0.5], rtol=1e-6)

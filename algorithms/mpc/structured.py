@@ -671,9 +671,22 @@ def _rows_first(priority, k: int):
 
 def _solve_held(S, held, rhs):
     """``x`` (k,) with ``S_HH x_H = rhs_H`` on the rows ``held`` ((k,), 1.0 or 0.0) of the Schur matrix ``S`` (k, k)
-    and ``x = 0`` elsewhere (identity rows decouple the rows not held): one small Cholesky."""
+    and ``x = 0`` elsewhere (identity rows decouple the rows not held): one small Cholesky. ``rhs`` off the set is
+    never read, so it may be infinite there (a free row's infinite bound)."""
     M = held[:, None] * S * held[None, :] + jnp.diag(1.0 - held)
-    return jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(M), True), held * rhs) * held
+    x = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(M), True), jnp.where(held > 0, rhs, 0.0))
+    return jnp.where(held > 0, x, 0.0)
+
+
+def _forces_at_bounds(ops: _PolishOps, side, lo, hi, s_free, k: int):
+    """``(index, lam)``: the forces ``lam`` on the rows ``index`` that hold the rows of ``side`` (+1: at the upper
+    bound, -1: at the lower, 0: free) at their bounds, the held rows first and at most ``k`` rows (every row, as
+    ``slice(None)``, when they fit: no sort, no gathers); ``lam`` is 0 off the set."""
+    held = side != 0
+    index = slice(None) if k == side.shape[0] else _rows_first(jnp.where(held, 0, 1), k)
+    target = jnp.where(side > 0, hi, jnp.where(side < 0, lo, 0.0))[index]
+    lam = _solve_held(ops.schur(index), held[index].astype(s_free.dtype), s_free[index] - target)
+    return index, lam
 
 
 def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, settings: Settings, keep=None) -> _Result:
@@ -731,11 +744,7 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
     def round_(carry):
         upper, lower, best, accepted = carry
         active = upper | lower
-        # The active rows first (by index), then the others as padding; at most k of them take part (all of them
-        # when they fit: no sort, no gathers).
-        index = slice(None) if k == p else _rows_first(jnp.where(active, 0, 1), k)
-        target = jnp.where(upper, hi, lo)[index]
-        lam = _solve_held(ops.schur(index), active[index].astype(dtype), s_free[index] - target)  # 0 off the set
+        index, lam = _forces_at_bounds(ops, jnp.where(upper, 1, jnp.where(lower, -1, 0)), lo, hi, s_free, k)
         primal, s = ops.correct(primal_free, index, lam)
         y = jnp.zeros(p, dtype).at[index].set(lam)
         good = (jnp.sum(active) <= k) & acceptable(primal, s, y) & ~accepted
@@ -852,17 +861,11 @@ def _dual_active_set(ops: _PolishOps, hard, lo, hi, primal_free, s_free, start_s
         met = (j < 0) & (violation[worst] <= 0.5 * tol)
         return side, lam, new_j, new_sigma, met, stuck, steps, (primal, s)
 
-    def equality_solution(side):
-        # The minimiser with the rows of side held at their bounds (the polish's round): multipliers (p,).
-        held = side != 0
-        index = rows if k == p else _rows_first(jnp.where(held, 0, 1), k)
-        target = jnp.where(side > 0, hi, jnp.where(side < 0, lo, 0.0))[index]
-        lam = _solve_held(ops.schur(index), held[index].astype(dtype), s_free[index] - target)
-        return jnp.zeros(p, dtype).at[index].set(lam)
-
     def restore(carry):
         side, _, rounds, _ = carry
-        lam = equality_solution(side)
+        # The multipliers (p,) that hold the rows of side at their bounds (the polish's round).
+        index, lam_index = _forces_at_bounds(ops, side, lo, hi, s_free, k)
+        lam = jnp.zeros(p, dtype).at[index].set(lam_index)
         wrong = (side != 0) & (lam * side < 0)
         return jnp.where(wrong, 0, side), jnp.where(wrong, 0.0, lam), rounds + 1, jnp.any(wrong)
 
