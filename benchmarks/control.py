@@ -384,7 +384,8 @@ def measure_qp_solvers(name: str, with_state: bool, args) -> dict:
     reference = Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
     reference32 = Reference(*(jnp.asarray(a) for a in reference))
     options = {"horizon": args.horizon}
-    controllers = {solver: make_linear_mpc(env, params, {**options, "solver": solver}) for solver in ("admm", "qpax")}
+    solvers = ("admm", "ipm", "qpax")
+    controllers = {solver: make_linear_mpc(env, params, {**options, "solver": solver}) for solver in solvers}
     # Fixed iteration counts (no copy waits for another): the throughput settings, each with its own parity error.
     for setting, overrides in THROUGHPUT.items():
         controllers[setting] = make_linear_mpc(env, params, {**options, **overrides})
@@ -394,7 +395,7 @@ def measure_qp_solvers(name: str, with_state: bool, args) -> dict:
     # Parity: one vmapped admm call against qpOASES one state at a time.
     casadi = {s: make_linear_mpc_casadi(env, params, {**options, "casadi_solver": s}) for s in ("qpoases", "osqp")}
     u_jax = {}
-    for solver in ("admm", *THROUGHPUT):
+    for solver in ("admm", "ipm", *THROUGHPUT):
         c = controllers[solver]
         act = jax.jit(jax.vmap(lambda x, k, c=c: c.act(c.reset(None, reference32), x, k, reference32)))
         u_jax[solver] = np.asarray(act(jnp.asarray(states, jnp.float32), jnp.asarray(steps))[0])
@@ -419,6 +420,8 @@ def measure_qp_solvers(name: str, with_state: bool, args) -> dict:
         parity_max_error_N=float(error.max()),
         parity_median_error_N=float(np.median(error)),
         throughput_error_N={setting: _error_summary(u_jax[setting], u_ref, feasible) for setting in THROUGHPUT},
+        ipm_max_error_N=float(np.abs(u_jax["ipm"] - u_ref).max(axis=1)[feasible].max()),
+        ipm_states_beyond_1e3=int((np.abs(u_jax["ipm"] - u_ref).max(axis=1)[feasible] > 1e-3).sum()),
         qpoases_qps=1.0 / casadi_s["qpoases"],
         osqp_qps=1.0 / casadi_s["osqp"],
     )
@@ -559,6 +562,7 @@ def write_solvers_markdown(path, qp_rows: list[dict], rti_rows: list[dict], meta
     batches = meta["config"]["batches"]
     columns = ["system", "constraints", "u0 max error vs qpOASES (N)", "feasible / states", "u0 at a bound"]
     columns += [f"admm QPs/s x{b}" for b in batches]
+    columns += ["ipm u0 max error (N)", "ipm states > 1e-3 N"] + [f"ipm QPs/s x{b}" for b in batches]
     columns += [f"qpax QPs/s x{b}" for b in batches if b <= 1024]
     columns += ["qpOASES QPs/s", "OSQP QPs/s"] + [f"env steps/s x{b}" for b in batches]
     rows = []
@@ -566,6 +570,9 @@ def write_solvers_markdown(path, qp_rows: list[dict], rti_rows: list[dict], meta
         cells = [r["system"], r["constraints"], f"{r['parity_max_error_N']:.1e}"]
         cells += [f"{r['parity_feasible']} / {r['parity_states']}", f"{r['parity_at_input_bound']:.2f}"]
         cells += [r["batches"][b]["admm_qps"] for b in batches]
+        cells += [f"{r['ipm_max_error_N']:.1e}", r["ipm_states_beyond_1e3"]] + [
+            r["batches"][b]["ipm_qps"] for b in batches
+        ]
         cells += [r["batches"][b]["qpax_qps"] for b in batches if b <= 1024]
         cells += [r["qpoases_qps"], r["osqp_qps"]] + [r["batches"][b]["env_steps_per_s"] for b in batches]
         rows.append(cells)
@@ -612,7 +619,9 @@ sets; u0 error over the states qpOASES solves), each solved cold. admm: `scg_alg
 MPC's defaults (tolerance {LINEAR.admm_tol:g}, at most {LINEAR.admm_max_iter:,} iterations and
 {LINEAR.admm_polish_rounds} rounds of active-set polish, then, where a copy stopped at the cap and no round was
 accepted, at most {LINEAR.admm_dual_active_set_steps} steps of a dual active-set method; each batch runs until its
-slowest copy is done); qpax: 40 interior-point iterations; qpOASES and OSQP: `linear_mpc_casadi`, one problem
+slowest copy is done); ipm: `scg_algorithms.mpc.interior_point` with linear MPC's defaults (at most
+{LINEAR.ipm_max_iter} iterations, complementarity tolerance {LINEAR.ipm_tol:g}, {LINEAR.ipm_polish_rounds} polish rounds
+from each of two starts); qpax: 40 interior-point iterations; qpOASES and OSQP: `linear_mpc_casadi`, one problem
 at a time on the host. env: one vmapped `env.step`. A copy whose iterate still violates a row by more than
 `feasibility_tol` (1e-3) after its iterations falls back to the clipped LQR input, which is where a throughput
 setting's largest errors come from. Throughput settings: {settings}. Load average at the start and end:

@@ -222,8 +222,9 @@ def test_jax_and_casadi_soft_constrained_mpc_agree_on_the_quadrotor(quadrotor, p
     assert violated >= 3  # most plans leave the position box: the slacks are priced the same way in both
 
 
+@pytest.mark.parametrize("solver", ["admm", "ipm"])
 @pytest.mark.parametrize("system", list(cases.CASES))
-def test_admm_linear_mpc_matches_qpoases_to_a_millinewton_with_active_input_and_state_rows(system):
+def test_linear_mpc_matches_qpoases_to_a_millinewton_with_active_input_and_state_rows(system, solver):
     # Float32, 100 random states per system through one vmapped call (the benchmark runs 1,000); CasADi qpOASES
     # one by one in float64. The states where qpOASES fails (hard state rows the plant cannot meet; on the 3D
     # quadrotor also some where the ADMM converges to a plan that meets them) are left out of the comparison.
@@ -235,7 +236,7 @@ def test_admm_linear_mpc_matches_qpoases_to_a_millinewton_with_active_input_and_
     case = cases.CASES[system]
     steps, states = cases.random_states(env, reference, case.offset, case.spread, count)
     options = {"horizon": 20}
-    jax_mpc = make_linear_mpc(env, params, options)
+    jax_mpc = make_linear_mpc(env, params, {**options, "solver": solver})
     casadi_mpc = make_linear_mpc_casadi(env, params, options)
     reference32 = Reference(*(jnp.asarray(a, jnp.float32) for a in reference))
     act = jax.jit(jax.vmap(lambda x, k: jax_mpc.act(jax_mpc.reset(None, reference32), x, k, reference32)))
@@ -249,14 +250,24 @@ def test_admm_linear_mpc_matches_qpoases_to_a_millinewton_with_active_input_and_
     u_casadi, feasible = np.array(u_casadi), np.array(feasible)
     assert feasible.sum() >= 40
     lo, hi = jax_mpc.info["u_low"], jax_mpc.info["u_high"]
-    assert np.all((u_jax >= lo) & (u_jax <= hi)) and np.all(status[feasible] != structured.INFEASIBLE)
-    np.testing.assert_allclose(u_jax[feasible], u_casadi[feasible], atol=1e-3)
+    assert np.all((u_jax >= lo) & (u_jax <= hi))
+    if solver == "admm":
+        assert np.all(status[feasible] != structured.INFEASIBLE)
+        np.testing.assert_allclose(u_jax[feasible], u_casadi[feasible], atol=1e-3)
+    else:
+        # The interior point in float32 misses a few states by a few millinewtons where its iterate lost the active
+        # set before the polish could hold it (docs/controllers.md: 4 of the 6,851 states qpOASES solves on the
+        # benchmark page, at most 6.6e-3 N): at most one of these 100 per system beyond 1e-3 N, none beyond 1e-2 N.
+        error = np.abs(u_jax - u_casadi).max(axis=1)[feasible]
+        assert np.sum(error > 1e-3) <= 1 and error.max() <= 1e-2
+        assert np.median(error) <= 1e-5
     # Active rows among the compared states: a first input at its bound, and a state row with a multiplier.
     at_bound = np.any((np.abs(u_casadi - lo) < 1e-6) | (np.abs(u_casadi - hi) < 1e-6), axis=1)
-    nu = env.nu
-    multipliers = np.asarray(ctrl_state.warm.multipliers).reshape(count, 20, -1)
-    state_active = np.any(np.abs(multipliers[:, :, nu:]) > 1e-6, axis=(1, 2))
-    assert np.sum(at_bound & feasible) >= 10 and np.sum(state_active & feasible) >= 5
+    assert np.sum(at_bound & feasible) >= 10
+    if solver == "admm":  # the ADMM keeps its multipliers for the warm start
+        multipliers = np.asarray(ctrl_state.warm.multipliers).reshape(count, 20, -1)
+        state_active = np.any(np.abs(multipliers[:, :, env.nu :]) > 1e-6, axis=(1, 2))
+        assert np.sum(state_active & feasible) >= 5
 
 
 FIXED_STEP = {"admm_tol": 0.0, "admm_polish_rounds": 0, "admm_adaptive_rho": False}
@@ -358,12 +369,13 @@ def test_without_active_constraints_the_first_input_is_the_lqr_input(cartpole):
                 np.testing.assert_allclose(u, -K @ x, rtol=1e-6, atol=1e-9)
 
 
-def test_an_infeasible_qp_falls_back_to_the_clipped_lqr_input(cartpole):
+@pytest.mark.parametrize("solver", ["admm", "ipm"])
+def test_an_infeasible_qp_falls_back_to_the_clipped_lqr_input(cartpole, solver):
     # The cart 1 m beyond its 0.3 m bound: no plan meets the hard row at the next state, so the input is LQR's,
     # clipped to the 2 N box. (The first-input test's controller and argument types: the same program, which the
     # run's compilation cache then holds.)
     env, params, reference = cartpole
-    mpc = make_linear_mpc(env, params, {"horizon": 20})
+    mpc = make_linear_mpc(env, params, {"horizon": 20, "solver": solver})
     x = np.array([1.3, 0.0, 0.0, 0.0])
     u, status = jax.jit(mpc.act)(mpc.reset(None, reference), jnp.asarray(x, jnp.float32), np.int64(0), reference)
     assert int(status.status) == structured.INFEASIBLE
@@ -419,6 +431,10 @@ def test_mpc_holds_an_input_bound_that_lqr_violates():
         ({"solver_tol": 0.0}, r"controllers\.linear_mpc\.solver_tol: must be positive"),
         ({"admm_rho_scale": 0.0}, r"controllers\.linear_mpc\.admm_rho_scale: must be positive"),
         ({"soft_constraints": True, "slack_l1": 0, "slack_l2": 0}, r"controllers\.linear_mpc\.slack_l1: "),
+        ({"solver": "ipm", "soft_constraints": True}, r"controllers\.linear_mpc\.soft_constraints: .*allowed.*admm"),
+        ({"ipm_max_iter": 0}, r"controllers\.linear_mpc\.ipm_max_iter: must be a positive integer"),
+        ({"ipm_tol": 0.0}, r"controllers\.linear_mpc\.ipm_tol: must be positive"),
+        ({"solver": "osqp"}, r"controllers\.linear_mpc\.solver: unknown value 'osqp'.*admm, ipm, qpax"),
     ],
 )
 def test_bad_options_name_the_field(cartpole, options, message):

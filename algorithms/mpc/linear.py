@@ -5,8 +5,9 @@ Two controllers share one ``Options`` dataclass (a config file's ``controllers.l
 
 - ``make_linear_mpc`` (registered ``"linear_mpc"``): a ``JaxController`` whose ``act`` solves the QP with the
   structured horizon-QP solver (``solver="admm"``, default: ``scg_algorithms.mpc.structured``, prepared once on the
-  host when the model is the same at every stage, warm-started from the previous step's shifted plan) or forms
-  the right-hand side of the condensed QP of ``scg_algorithms.mpc.qp`` and solves it with ``qpax``
+  host when the model is the same at every stage, warm-started from the previous step's shifted plan), with the
+  interior point on the same problem (``solver="ipm"``: ``scg_algorithms.mpc.interior_point``, hard rows only), or
+  forms the right-hand side of the condensed QP of ``scg_algorithms.mpc.qp`` and solves it with ``qpax``
   (``solver="qpax"``, a primal-dual interior-point method in JAX); ``jax.vmap`` runs thousands of copies at once.
 - ``make_linear_mpc_casadi`` (registered ``"linear_mpc_casadi"``): the same problem for one copy on the host in the
   form of ``casadi.Opti("conic")`` (inputs as the only variables, states as expressions of them; no
@@ -65,12 +66,12 @@ import numpy as np
 from scg_algorithms import controller_setup as setup
 from scg_algorithms.base import JaxController, option, parse_options, positive, state_from_obs
 from scg_algorithms.lqr import discrete_lqr_gain
+from scg_algorithms.mpc import interior_point, structured
 from scg_algorithms.mpc import qp as qp_lib
-from scg_algorithms.mpc import structured
 
 LINEARIZE_ABOUT = setup.LINEARIZE_ABOUT
 CASADI_SOLVERS = ("qpoases", "osqp")
-SOLVERS = ("admm", "qpax")
+SOLVERS = ("admm", "ipm", "qpax")
 PATH = "controllers.linear_mpc"
 CASADI_PATH = "controllers.linear_mpc_casadi"
 
@@ -102,7 +103,8 @@ class Options(setup.MPCOptions):
     solver: str = option(
         "admm",
         "JAX QP solver: admm (scg_algorithms.mpc.structured: condensed OSQP-style ADMM, factorised once, warm "
-        "started) or qpax (dense interior point)",
+        "started), ipm (scg_algorithms.mpc.interior_point: interior point with Riccati steps and an active-set "
+        "polish; hard constraints only) or qpax (dense interior point)",
         choices=SOLVERS,
     )
     admm_max_iter: int = option(1000, "admm: iterations at most per step (each copy stops when converged)")
@@ -131,6 +133,9 @@ class Options(setup.MPCOptions):
         "condensed Hessian and the rows' Gram matrix (with admm_adaptive_rho false: the step size throughout)",
     )
     warm_start: bool = option(True, "admm: start from the previous step's plan and multipliers, shifted")
+    ipm_max_iter: int = option(30, "ipm: interior-point iterations at most per step (each copy stops when converged)")
+    ipm_tol: float = option(1e-6, "ipm: largest complementarity product (scaled) of a converged iterate")
+    ipm_polish_rounds: int = option(3, "ipm: active-set polish rounds after the iterations (0: none)")
     max_iter: int = option(40, "qpax interior-point iterations at most (float32 solves rarely stop earlier)")
     solver_tol: float = option(
         1e-8, "qpax KKT residual tolerance (on the scaled QP; the default runs max_iter, see scg_algorithms.mpc.qp)"
@@ -141,21 +146,33 @@ class Options(setup.MPCOptions):
     casadi_solver: str = option("qpoases", "conic solver of the CasADi variant", choices=CASADI_SOLVERS)
 
     def _check(self, path: str) -> None:
-        for name in ("horizon", "max_iter", "admm_max_iter", "admm_check_every"):
+        for name in ("horizon", "max_iter", "admm_max_iter", "admm_check_every", "ipm_max_iter"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{path}.{name}: must be a positive integer, got {getattr(self, name)!r}")
-        for name in ("solver_tol", "feasibility_tol", "admm_rho_scale"):
+        for name in ("solver_tol", "feasibility_tol", "admm_rho_scale", "ipm_tol"):
             positive(f"{path}.{name}", getattr(self, name))
-        for name in ("slack_l1", "slack_l2", "admm_tol", "admm_polish_rounds", "admm_dual_active_set_steps"):
+        for name in (
+            "slack_l1",
+            "slack_l2",
+            "admm_tol",
+            "admm_polish_rounds",
+            "admm_dual_active_set_steps",
+            "ipm_polish_rounds",
+        ):
             if getattr(self, name) < 0:
                 raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
+        if self.solver == "ipm" and self.soft_constraints:
+            raise ValueError(
+                f"{path}.soft_constraints: the ipm solver holds hard constraints only; allowed with soft "
+                "constraints: solver admm or qpax"
+            )
         if self.soft_constraints and self.slack_l1 == 0 and self.slack_l2 == 0:
             raise ValueError(f"{path}.slack_l1: slack_l1 and slack_l2 are both 0, so a slack would be free")
 
 
 class LinearMPCState(NamedTuple):
     """The memory of one copy: the last solve's ``status`` (int32: ``scg_algorithms.mpc.structured``'s codes with
-    ``solver="admm"``, ``scg_algorithms.mpc.qp.STATUS_*`` with qpax; ``info["status_names"]`` names them) and
+    ``solver="admm"`` and ``"ipm"``, ``scg_algorithms.mpc.qp.STATUS_*`` with qpax; ``info["status_names"]`` names them) and
     ``iterations`` (int32); with admm, the plan's ``warm`` start (``structured.Warm``; ``rho = 0``: none) and
     ``plan_step``, the control step it was made at."""
 
@@ -377,9 +394,9 @@ def _structured_rows(problem: Problem):
     return x_rows, x_low, x_high, soft_x, Ax / norms[:, None], Au / norms[:, None], b / norms, soft_rows
 
 
-def structured_mpc(problem: Problem) -> StructuredMPC:
-    """The linear MPC of ``problem`` for ``scg_algorithms.mpc.structured`` (host, float64; prepared once when the
-    model's matrices do not change along the reference)."""
+def structured_mpc(problem: Problem, prepare: bool = True) -> StructuredMPC:
+    """The linear MPC of ``problem`` for ``scg_algorithms.mpc.structured`` (host, float64; with ``prepare``, prepared
+    once for the ADMM when the model's matrices do not change along the reference)."""
     opts = problem.options
     affine = problem.affine
     H, nx, nu = opts.horizon, problem.Q.shape[0], problem.R.shape[0]
@@ -414,7 +431,7 @@ def structured_mpc(problem: Problem) -> StructuredMPC:
         for a in (problem.u_low, problem.u_high, x_low, x_high, np.full(m, -np.inf), row_high)
     )
     prepared = None
-    if affine.time_invariant:
+    if prepare and affine.time_invariant:
         template = structured.HorizonQP(
             A=np.repeat(affine.Ad[:1], H, axis=0),
             B=np.repeat(affine.Bd[:1], H, axis=0),
@@ -486,6 +503,43 @@ def _structured_solve(problem: Problem, smpc: StructuredMPC, dtype):
     return solve
 
 
+def _ipm_solve(problem: Problem, smpc: StructuredMPC, dtype):
+    """``solve(ctrl_state, x, step, x_ref) -> (u_0, ctrl_state, failed)`` with the ipm solver (one copy; no warm
+    start: an interior point gains little from one)."""
+    opts, affine, layout = problem.options, problem.affine, smpc.layout
+    H, n_points = opts.horizon, affine.num_points
+    cast = lambda a: jnp.asarray(a, dtype)  # noqa: E731
+    c_table, Ad, Bd, K = (cast(a) for a in (affine.c, affine.Ad, affine.Bd, affine.K))
+    stage_Q, R = cast(smpc.stage_Q), cast(problem.R)
+    P = cast(affine.P)
+    R_stages = jnp.broadcast_to(R, (H, *R.shape))
+    r = jnp.tile(-(R @ cast(affine.u_bar)), (H, 1))
+    bounds = tuple(cast(b) for b in smpc.bounds)
+    C, D = (jnp.broadcast_to(cast(a), (H, *a.shape)) for a in (smpc.C, smpc.D))
+    settings = interior_point.IPMSettings(
+        max_iterations=opts.ipm_max_iter, tol=opts.ipm_tol, polish_rounds=opts.ipm_polish_rounds
+    )
+    empty = _no_warm(layout, dtype)
+
+    def solve(ctrl_state, x, step, x_ref):
+        stages = jnp.clip(step + jnp.arange(H), 0, n_points - 1)
+        targets = jnp.clip(step + 1 + jnp.arange(H), 0, x_ref.shape[0] - 1)
+        Q = stage_Q if affine.time_invariant else stage_Q.at[-1].set(P[jnp.minimum(step + H, n_points - 1)])
+        q = -jnp.einsum("kxy,ky->kx", Q, jnp.asarray(x_ref, dtype)[targets])
+        qp = structured.HorizonQP(
+            Ad[stages], Bd[stages], c_table[stages], K[stages], Q, q, R_stages, r, *bounds[:4], C, D, *bounds[4:]
+        )
+        sol = interior_point.solve(layout, qp, x, settings)
+        u = sol.u[0]
+        # An unconverged or broken-off iterate is used where it holds the rows (its violation), as the admm's is.
+        failed = (sol.status == structured.INFEASIBLE) | (sol.violation > opts.feasibility_tol)
+        failed = failed | ~jnp.all(jnp.isfinite(u))
+        state = LinearMPCState(sol.status, sol.iterations, empty, jnp.asarray(step, jnp.int32))
+        return u, state, failed
+
+    return solve
+
+
 # --------------------------------------------------------------------------------------------- JAX controller
 def make_linear_mpc(env, prior_params, options=None) -> JaxController:
     """Batched linear MPC in JAX (see the module docstring).
@@ -498,7 +552,7 @@ def make_linear_mpc(env, prior_params, options=None) -> JaxController:
     Returns:
         A ``JaxController`` named ``"linear_mpc"``. ``act`` returns the input (nu,), N, and ``LinearMPCState``.
         ``info`` holds ``solver``, ``status_names``, ``qp`` (the ``CondensedQP`` of qpax), ``structured`` (the
-        ``StructuredMPC`` of admm, ``None`` with qpax), ``horizon``, ``linearize_about``, ``K_lqr``,
+        ``StructuredMPC`` of admm and ipm, unprepared with ipm; ``None`` with qpax), ``horizon``, ``linearize_about``, ``K_lqr``,
         ``u_low``/``u_high`` (the clip box) and ``skipped_constraints``.
 
     Raises:
@@ -513,9 +567,10 @@ def make_linear_mpc(env, prior_params, options=None) -> JaxController:
     u_low = jnp.asarray(problem.u_low, dtype)
     u_high = jnp.asarray(problem.u_high, dtype)
     last_point = problem.K_lqr.shape[0] - 1
-    if opts.solver == "admm":
-        smpc = structured_mpc(problem)
-        solve_structured = _structured_solve(problem, smpc, dtype)
+    if opts.solver in ("admm", "ipm"):
+        smpc = structured_mpc(problem, prepare=opts.solver == "admm")
+        make_solve = _structured_solve if opts.solver == "admm" else _ipm_solve
+        solve_structured = make_solve(problem, smpc, dtype)
         empty = _no_warm(smpc.layout, dtype)
         status_names = structured.STATUS_NAMES
     else:
