@@ -172,9 +172,9 @@ class Options(setup.MPCOptions):
 
 class LinearMPCState(NamedTuple):
     """The memory of one copy: the last solve's ``status`` (int32: ``scg_algorithms.mpc.structured``'s codes with
-    ``solver="admm"`` and ``"ipm"``, ``scg_algorithms.mpc.qp.STATUS_*`` with qpax; ``info["status_names"]`` names them) and
-    ``iterations`` (int32); with admm, the plan's ``warm`` start (``structured.Warm``; ``rho = 0``: none) and
-    ``plan_step``, the control step it was made at."""
+    ``solver="admm"`` and ``"ipm"``, ``scg_algorithms.mpc.qp.STATUS_*`` with qpax; ``info["status_names"]`` names
+    them) and ``iterations`` (int32); with admm, the plan's ``warm`` start (``structured.Warm``; ``rho = 0``: none)
+    and ``plan_step``, the control step it was made at."""
 
     status: Any
     iterations: Any
@@ -552,8 +552,8 @@ def make_linear_mpc(env, prior_params, options=None) -> JaxController:
     Returns:
         A ``JaxController`` named ``"linear_mpc"``. ``act`` returns the input (nu,), N, and ``LinearMPCState``.
         ``info`` holds ``solver``, ``status_names``, ``qp`` (the ``CondensedQP`` of qpax), ``structured`` (the
-        ``StructuredMPC`` of admm and ipm, unprepared with ipm; ``None`` with qpax), ``horizon``, ``linearize_about``, ``K_lqr``,
-        ``u_low``/``u_high`` (the clip box) and ``skipped_constraints``.
+        ``StructuredMPC`` of admm and ipm, unprepared with ipm; ``None`` with qpax), ``horizon``,
+        ``linearize_about``, ``K_lqr``, ``u_low``/``u_high`` (the clip box) and ``skipped_constraints``.
 
     Raises:
         ValueError: naming ``controllers.linear_mpc.<field>`` for a bad option.
