@@ -11,7 +11,13 @@ import scipy.linalg
 
 from scg_algorithms.mpc import interior_point as ipm
 from scg_algorithms.mpc import structured as S
-from tests.test_structured_qp import DOUBLE_INTEGRATOR, _qp, _qpoases, _random_time_varying
+from tests.test_structured_qp import (
+    DOUBLE_INTEGRATOR,
+    _qp,
+    _random_time_varying,
+    assert_lqr_plan,
+    random_qps_match_qpoases,
+)
 
 _solve = jax.jit(ipm.solve, static_argnums=(0, 3))
 
@@ -28,12 +34,7 @@ def test_an_unconstrained_lq_problem_gives_the_lqr_plan():
     x0 = np.array([1.0, -0.5])
     with jax.enable_x64(True):
         sol = jax.tree.map(np.asarray, _solve(layout, qp, jnp.asarray(x0), ipm.IPMSettings()))
-    assert int(sol.status) == S.CONVERGED
-    x = x0
-    for k in range(layout.horizon):
-        np.testing.assert_allclose(sol.u[k], -K @ x, atol=1e-7)
-        x = A @ x + B @ sol.u[k]
-        np.testing.assert_allclose(sol.x[k + 1], x, atol=1e-9)
+    assert_lqr_plan(sol, x0, K, layout.horizon)
     np.testing.assert_allclose(sol.multipliers, 0.0, atol=1e-7)
 
 
@@ -91,25 +92,7 @@ def test_the_riccati_step_solves_the_dense_kkt_system():
 
 def test_random_time_varying_qps_with_state_and_general_rows_match_qpoases():
     # The structured solver's 16 random problems (every matrix changes along the horizon), float64, batched.
-    rng = np.random.default_rng(0)
-    problems = [_random_time_varying(rng, 8, 3, 2, 2) for _ in range(16)]
-    layout = problems[0][0]
-    x0s = rng.uniform(-0.5, 0.5, (16, 3))
-    with jax.enable_x64(True):
-        batch = jax.tree.map(lambda *a: jnp.stack(a), *[qp for _, qp in problems])
-        sols = jax.jit(jax.vmap(lambda qp, x: ipm.solve(layout, qp, x)))(batch, jnp.asarray(x0s))
-    active = solved = 0
-    for i, (_, qp) in enumerate(problems):
-        u_ref, success = _qpoases(layout, qp, x0s[i])
-        if not success:  # an infeasible problem must not pass as solved
-            assert int(sols.status[i]) != S.CONVERGED and float(sols.violation[i]) > 1e-3
-            continue
-        solved += 1
-        assert int(sols.status[i]) == S.CONVERGED
-        np.testing.assert_allclose(sols.u[i, 0], u_ref, atol=1e-6)
-        plan = np.asarray(sols.x[i, 1:, 0])
-        active += int(np.any(np.isclose(plan, 0.4, atol=1e-6) | np.isclose(plan, -0.5, atol=1e-6)))
-    assert solved >= 10 and active >= 4
+    random_qps_match_qpoases(ipm.solve)
 
 
 def test_an_infeasible_problem_reports_its_status_and_a_finite_plan():

@@ -64,12 +64,18 @@ def test_an_unconstrained_lq_problem_gives_the_lqr_plan(prestabilize):
             _solve(layout, qp, jnp.asarray(x0)),
             _solve_prepared(layout, S.prepare(layout, qp), x0, qp.c, qp.q, qp.r, tuple(qp[8:12]) + tuple(qp[14:])),
         ):
-            assert int(sol.status) == S.CONVERGED
-            x = x0
-            for k in range(layout.horizon):
-                np.testing.assert_allclose(sol.u[k], -K @ x, atol=1e-7)
-                x = A @ x + B @ sol.u[k]
-                np.testing.assert_allclose(sol.x[k + 1], x, atol=1e-9)
+            assert_lqr_plan(sol, x0, K, layout.horizon)
+
+
+def assert_lqr_plan(sol, x0, K, horizon):
+    """``sol`` converged to the LQR law ``u = -K x`` on the double integrator from ``x0`` at every stage."""
+    A, B = DOUBLE_INTEGRATOR
+    assert int(sol.status) == S.CONVERGED
+    x = x0
+    for k in range(horizon):
+        np.testing.assert_allclose(sol.u[k], -K @ x, atol=1e-7)
+        x = A @ x + B @ np.asarray(sol.u[k])
+        np.testing.assert_allclose(sol.x[k + 1], x, atol=1e-9)
 
 
 def test_one_active_input_bound_matches_the_hand_solved_kkt_system():
@@ -149,20 +155,21 @@ def _random_time_varying(rng, N, nx, nu, m):
     return layout, qp
 
 
-def test_random_time_varying_qps_with_state_and_general_rows_match_qpoases():
-    # Every matrix changes along the horizon (as SQP-RTI's linearisations do); float64, 16 problems batched.
+def random_qps_match_qpoases(solve_one):
+    """16 random time-varying problems with state and general rows (float64, batched through ``solve_one(layout,
+    qp, x0)``) against qpOASES: every problem qpOASES solves converges to its first input within 1e-6, the others
+    are not reported converged and violate a row, and the state rows bind in several."""
     rng = np.random.default_rng(0)
     problems = [_random_time_varying(rng, 8, 3, 2, 2) for _ in range(16)]
     layout = problems[0][0]
     x0s = rng.uniform(-0.5, 0.5, (16, 3))
     with jax.enable_x64(True):
         batch = jax.tree.map(lambda *a: jnp.stack(a), *[qp for _, qp in problems])
-        settings = S.Settings(max_iterations=2000)
-        sols = jax.jit(jax.vmap(lambda qp, x: S.solve(layout, qp, x, None, settings)))(batch, jnp.asarray(x0s))
+        sols = jax.jit(jax.vmap(lambda qp, x: solve_one(layout, qp, x)))(batch, jnp.asarray(x0s))
     active = solved = 0
     for i, (_, qp) in enumerate(problems):
         u_ref, success = _qpoases(layout, qp, x0s[i])
-        if not success:  # a random problem may be infeasible: then the ADMM's plan must not pass as a solution
+        if not success:  # a random problem may be infeasible: then the plan must not pass as a solution
             assert int(sols.status[i]) != S.CONVERGED and float(sols.violation[i]) > 1e-3
             continue
         solved += 1
@@ -171,6 +178,12 @@ def test_random_time_varying_qps_with_state_and_general_rows_match_qpoases():
         plan = np.asarray(sols.x[i, 1:, 0])
         active += int(np.any(np.isclose(plan, 0.4, atol=1e-6) | np.isclose(plan, -0.5, atol=1e-6)))
     assert solved >= 10 and active >= 4  # the state rows bind in several of them
+
+
+def test_random_time_varying_qps_with_state_and_general_rows_match_qpoases():
+    # Every matrix changes along the horizon (as SQP-RTI's linearisations do).
+    settings = S.Settings(max_iterations=2000)
+    random_qps_match_qpoases(lambda layout, qp, x: S.solve(layout, qp, x, None, settings))
 
 
 def test_the_condensed_hessian_is_the_sum_of_the_stage_costs_over_the_maps():
