@@ -133,7 +133,11 @@ class Options(setup.MPCOptions):
         "condensed Hessian and the rows' Gram matrix (with admm_adaptive_rho false: the step size throughout)",
     )
     warm_start: bool = option(True, "admm: start from the previous step's plan and multipliers, shifted")
-    ipm_max_iter: int = option(30, "ipm: interior-point iterations at most per step (each copy stops when converged)")
+    ipm_max_iter: int = option(
+        15,
+        "ipm: interior-point iterations at most per step (each copy stops when converged; a batch runs until its "
+        "slowest copy stops, and one that has not converged by then seldom will in float32)",
+    )
     ipm_tol: float = option(1e-6, "ipm: largest complementarity product (scaled) of a converged iterate")
     ipm_polish_rounds: int = option(3, "ipm: active-set polish rounds after the iterations (0: none)")
     max_iter: int = option(40, "qpax interior-point iterations at most (float32 solves rarely stop earlier)")
