@@ -256,7 +256,7 @@ def test_linear_mpc_matches_qpoases_to_a_millinewton_with_active_input_and_state
         np.testing.assert_allclose(u_jax[feasible], u_casadi[feasible], atol=1e-3)
     else:
         # The interior point in float32 misses a few states by a few millinewtons where its iterate lost the active
-        # set before the polish could hold it (docs/controllers.md: 4 of the 6,851 states qpOASES solves on the
+        # set before the polish could hold it (docs/controllers.md: 3 of the 6,851 states qpOASES solves on the
         # benchmark page, at most 6.6e-3 N): at most one of these 100 per system beyond 1e-3 N, none beyond 1e-2 N.
         error = np.abs(u_jax - u_casadi).max(axis=1)[feasible]
         assert np.sum(error > 1e-3) <= 1 and error.max() <= 1e-2
