@@ -464,39 +464,51 @@ def _no_warm(layout: structured.Layout, dtype) -> structured.Warm:
     return structured.Warm(zeros, zeros, jnp.zeros((), dtype))
 
 
-def _structured_solve(problem: Problem, smpc: StructuredMPC, dtype):
-    """``solve(ctrl_state, x, step, x_ref) -> (u_0, ctrl_state, failed)`` with the admm solver (one copy)."""
-    opts, affine, layout = problem.options, problem.affine, smpc.layout
+def _horizon_qp(problem: Problem, smpc: StructuredMPC, dtype):
+    """``qp_at(step, x_ref) -> HorizonQP``: one copy's horizon QP at control step ``step`` (the model's points from
+    ``step`` on, the reference's targets from ``step + 1``; along a reference, the terminal weight of the last
+    point)."""
+    opts, affine = problem.options, problem.affine
     H, n_points = opts.horizon, affine.num_points
     cast = lambda a: jnp.asarray(a, dtype)  # noqa: E731
     c_table, Ad, Bd, K, P = (cast(a) for a in (affine.c, affine.Ad, affine.Bd, affine.K, affine.P))
     stage_Q, R = cast(smpc.stage_Q), cast(problem.R)
+    R_stages = jnp.broadcast_to(R, (H, *R.shape))
     r = jnp.tile(-(R @ cast(affine.u_bar)), (H, 1))
     bounds = tuple(cast(b) for b in smpc.bounds)
     C, D = (jnp.broadcast_to(cast(a), (H, *a.shape)) for a in (smpc.C, smpc.D))
+
+    def qp_at(step, x_ref):
+        stages = jnp.clip(step + jnp.arange(H), 0, n_points - 1)
+        targets = jnp.clip(step + 1 + jnp.arange(H), 0, x_ref.shape[0] - 1)
+        Q = stage_Q if affine.time_invariant else stage_Q.at[-1].set(P[jnp.minimum(step + H, n_points - 1)])
+        q = -jnp.einsum("kxy,ky->kx", Q, jnp.asarray(x_ref, dtype)[targets])
+        return structured.HorizonQP(
+            Ad[stages], Bd[stages], c_table[stages], K[stages], Q, q, R_stages, r, *bounds[:4], C, D, *bounds[4:]
+        )
+
+    return qp_at
+
+
+def _structured_solve(problem: Problem, smpc: StructuredMPC, dtype):
+    """``solve(ctrl_state, x, step, x_ref) -> (u_0, ctrl_state, failed)`` with the admm solver (one copy)."""
+    opts, layout, H = problem.options, smpc.layout, problem.options.horizon
+    qp_at = _horizon_qp(problem, smpc, dtype)
     cold = _no_warm(layout, dtype)
 
     def where(condition, a, b):
         return jax.tree.map(lambda u, v: jnp.where(condition, u, v), a, b)
 
     def solve(ctrl_state, x, step, x_ref):
-        stages = jnp.clip(step + jnp.arange(H), 0, n_points - 1)
-        targets = jnp.clip(step + 1 + jnp.arange(H), 0, x_ref.shape[0] - 1)
-        Q = stage_Q if smpc.prepared is not None else stage_Q.at[-1].set(P[jnp.minimum(step + H, n_points - 1)])
-        q = -jnp.einsum("kxy,ky->kx", Q, jnp.asarray(x_ref, dtype)[targets])
+        qp = qp_at(step, x_ref)
         moved = step - ctrl_state.plan_step
         usable = (ctrl_state.plan_step >= 0) & (moved >= 1) & (moved <= H)
         warm = where(usable, structured.shift(layout, ctrl_state.warm, jnp.maximum(moved, 0)), cold)
         warm = warm if opts.warm_start else cold
-        if smpc.prepared is not None:
-            sol = structured.solve_prepared(
-                layout, smpc.prepared, x, c_table[stages], q, r, bounds, warm, smpc.settings
-            )
+        if smpc.prepared is not None:  # the matrices are the prepared ones: only the vectors change
+            bounds = tuple(getattr(qp, name) for name in structured.BOUND_FIELDS)
+            sol = structured.solve_prepared(layout, smpc.prepared, x, qp.c, qp.q, qp.r, bounds, warm, smpc.settings)
         else:
-            R_stages = jnp.broadcast_to(R, (H, *R.shape))
-            qp = structured.HorizonQP(
-                Ad[stages], Bd[stages], c_table[stages], K[stages], Q, q, R_stages, r, *bounds[:4], C, D, *bounds[4:]
-            )
             sol = structured.solve(layout, qp, x, warm, smpc.settings)
         u = sol.u[0]
         unusable = (sol.status == structured.INFEASIBLE) | (sol.status == structured.NUMERICAL)
@@ -510,30 +522,15 @@ def _structured_solve(problem: Problem, smpc: StructuredMPC, dtype):
 def _ipm_solve(problem: Problem, smpc: StructuredMPC, dtype):
     """``solve(ctrl_state, x, step, x_ref) -> (u_0, ctrl_state, failed)`` with the ipm solver (one copy; no warm
     start: an interior point gains little from one)."""
-    opts, affine, layout = problem.options, problem.affine, smpc.layout
-    H, n_points = opts.horizon, affine.num_points
-    cast = lambda a: jnp.asarray(a, dtype)  # noqa: E731
-    c_table, Ad, Bd, K = (cast(a) for a in (affine.c, affine.Ad, affine.Bd, affine.K))
-    stage_Q, R = cast(smpc.stage_Q), cast(problem.R)
-    P = cast(affine.P)
-    R_stages = jnp.broadcast_to(R, (H, *R.shape))
-    r = jnp.tile(-(R @ cast(affine.u_bar)), (H, 1))
-    bounds = tuple(cast(b) for b in smpc.bounds)
-    C, D = (jnp.broadcast_to(cast(a), (H, *a.shape)) for a in (smpc.C, smpc.D))
+    opts = problem.options
+    qp_at = _horizon_qp(problem, smpc, dtype)
     settings = interior_point.IPMSettings(
         max_iterations=opts.ipm_max_iter, tol=opts.ipm_tol, polish_rounds=opts.ipm_polish_rounds
     )
-    empty = _no_warm(layout, dtype)
+    empty = _no_warm(smpc.layout, dtype)
 
     def solve(ctrl_state, x, step, x_ref):
-        stages = jnp.clip(step + jnp.arange(H), 0, n_points - 1)
-        targets = jnp.clip(step + 1 + jnp.arange(H), 0, x_ref.shape[0] - 1)
-        Q = stage_Q if affine.time_invariant else stage_Q.at[-1].set(P[jnp.minimum(step + H, n_points - 1)])
-        q = -jnp.einsum("kxy,ky->kx", Q, jnp.asarray(x_ref, dtype)[targets])
-        qp = structured.HorizonQP(
-            Ad[stages], Bd[stages], c_table[stages], K[stages], Q, q, R_stages, r, *bounds[:4], C, D, *bounds[4:]
-        )
-        sol = interior_point.solve(layout, qp, x, settings)
+        sol = interior_point.solve(smpc.layout, qp_at(step, x_ref), x, settings)
         u = sol.u[0]
         # An unconverged or broken-off iterate is used where it holds the rows (its violation), as the admm's is.
         failed = (sol.status == structured.INFEASIBLE) | (sol.violation > opts.feasibility_tol)
