@@ -149,10 +149,12 @@ def test_piped_compare_prints_every_interval_from_its_start_and_ctrl_c_exits_130
     --progress-interval seconds through building, compiling and evaluating (host-side, step by step); Ctrl-C during
     the evaluation: status 130, one line, no traceback."""
     (tmp_path / "configs").symlink_to(Path(__file__).resolve().parents[1] / "configs")
-    args = ["compare", "--config", "configs/cartpole_stabilization.yaml", "--set", "env.episode_len_sec=3",
+    # 20 s episodes: the evaluation takes about 7 s on an idle 2-core machine, so Ctrl-C, sent at its second progress
+    # line, lands inside it (with 3 s episodes it took 1 s and could end before the signal came: status 0).
+    args = ["compare", "--config", "configs/cartpole_stabilization.yaml", "--set", "env.episode_len_sec=20",
             "--controllers", "nonlinear_mpc", "--episodes", "3", "--progress-interval", str(INTERVAL)]  # fmt: skip
     run = _Piped(args, tmp_path)
-    run.wait_for(lambda lines: any(line.startswith("evaluating nonlinear_mpc") for line in lines[:-2]))
+    run.wait_for(lambda lines: sum(line.startswith("evaluating nonlinear_mpc") for line in lines) >= 2)
     run.process.send_signal(signal.SIGINT)
     status, lines, err = run.finish()
     assert status == 130 and err == "", err
