@@ -591,12 +591,14 @@ def _brax_env(env, action_scale: float):
 
 
 def brax_time_to_threshold(
-    env, params, cfg, algo, threshold, eval_key, episodes, max_s, num_evals, console, max_crash_rate: float = 0.0
-) -> dict:
+    env, params, cfg, algo, threshold, eval_key, episodes, max_s, num_evals, console, max_crash_rate: float = 0.0,
+    seed: int = 0,
+) -> dict:  # fmt: skip
     """brax's PPO or SAC (``algo``) on the same env with our config's matched hyperparameters (``brax_arguments``),
     its deterministic policy evaluated by our harness at ``num_evals`` points, as ours (evaluation excluded from the
-    clock); brax's own evaluator is off. The run stops at the first point at the threshold or past ``max_s`` (a
-    callback can end brax's run only there, so it may overrun ``max_s`` by up to one interval between points).
+    clock), trained from brax's ``seed``; brax's own evaluator is off. The run stops at the first point at the
+    threshold or past ``max_s`` (a callback can end brax's run only there, so it may overrun ``max_s`` by up to one
+    interval between points).
 
     PPO's points come from its ``policy_params_fn``. brax's SAC (0.14.2) has no such callback and its
     ``progress_fn`` gets metrics only, so for the run ``brax.training.acting.Evaluator`` is replaced by one that
@@ -642,7 +644,7 @@ def brax_time_to_threshold(
 
     common = dict(
         environment=_brax_env(env, config.action_scale), episode_length=env.num_steps, wrap_env_fn=wrap_for_training,
-        num_evals=num_evals, num_eval_envs=16, seed=0,
+        num_evals=num_evals, num_eval_envs=16, seed=seed,
     )  # fmt: skip
     start = time.perf_counter()
     try:
@@ -668,6 +670,15 @@ def brax_time_to_threshold(
     return {"reached": reached, "time_s": last["time_s"], "env_steps": last["env_steps"], "curve": curve}
 
 
+def median_run(runs: list[dict]) -> dict:
+    """The median of one learner's runs from several seeds, as one result: the runs ordered by time with the unreached
+    ones last (a run that stopped unreached is slower than any that reached, whenever it stopped), the middle one
+    taken (the upper middle of an even count), with ``runs`` (all of them, in seed order) added. Its ``reached`` is
+    False when most runs did not reach the threshold: its time is then where that run stopped, a lower bound."""
+    ordered = sorted(runs, key=lambda run: (not run["reached"], run["time_s"]))
+    return {**ordered[len(ordered) // 2], "runs": list(runs)}
+
+
 def brax_over_ours(ours: dict, brax: dict) -> tuple[float | None, str]:
     """brax's time to threshold over ours (> 1: ours is faster) and how to read it: ``"="`` both reached, ``">="``
     only ours (brax's time is where it stopped), ``"<="`` only brax's; ``(None, "")`` when neither reached."""
@@ -690,6 +701,20 @@ def ttq_rows(ours: dict, brax: dict) -> list[dict]:
     return rows
 
 
+def _reached_cell(result: dict | None) -> str:
+    """``"2 / 3"``: the seeds that reached the threshold (a result without ``runs`` is one seed)."""
+    if result is None:
+        return ""
+    runs = result.get("runs", [result])
+    return f"{sum(run['reached'] for run in runs)} / {len(runs)}"
+
+
+def seed_times(result: dict) -> str:
+    """Each seed's time, ``*`` where it did not reach the threshold: ``"4.7, 13.3*, 10.4 s"``."""
+    runs = result.get("runs", [result])
+    return ", ".join(f"{run['time_s']:.1f}{'' if run['reached'] else '*'}" for run in runs) + " s"
+
+
 def _time_cell(result: dict | None) -> str:
     if result is None:
         return "not run"
@@ -701,21 +726,23 @@ def _time_cell(result: dict | None) -> str:
 
 
 def ttq_table_rows(rows: list[dict]) -> list[list]:
-    """``ttq_rows`` as table cells: learner, our time (s), our env steps, brax's learner, its time and env steps, and
-    brax / ours (prefixed ">=" or "<=" when only one side reached the threshold)."""
+    """``ttq_rows`` as table cells: learner, seeds reached, our (median) time (s) and env steps, brax's learner, its
+    seeds reached, time and env steps, and brax / ours (prefixed ">=" or "<=" when only one side reached the
+    threshold)."""
     cells = []
     for row in rows:
         ours, brax = row["ours"], row["brax"]
         prefix = "" if row["relation"] in ("", "=") else row["relation"] + " "
         ratio = "" if row["brax_over_ours"] is None else f"{prefix}{row['brax_over_ours']:.2f}"
         cells.append([
-            row["algo"], _time_cell(ours), ours["env_steps"], f"brax {row['brax_algo'].upper()}", _time_cell(brax),
-            None if brax is None else brax["env_steps"], ratio,
+            row["algo"], _reached_cell(ours), _time_cell(ours), ours["env_steps"], f"brax {row['brax_algo'].upper()}",
+            _reached_cell(brax), _time_cell(brax), None if brax is None else brax["env_steps"], ratio,
         ])  # fmt: skip
     return cells
 
 
-TTQ_COLUMNS = ["learner", "time (s)", "env steps", "brax", "brax time (s)", "brax env steps", "brax / ours"]
+TTQ_COLUMNS = ["learner", "seeds reached", "median time (s)", "env steps", "brax", "brax seeds reached",
+               "brax median time (s)", "brax env steps", "brax / ours"]  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------- the page
@@ -868,7 +895,12 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--eval-starts", type=Path, metavar="FILE", help=eval_starts_help)
     parser.add_argument("--max-seconds", type=float, default=300.0, help="give up after this much training time")
-    parser.add_argument("--chunk-seconds", type=float, default=3.0, help="training time between evaluations")
+    parser.add_argument(
+        "--seeds", type=int, default=3, help="time to threshold: seeds 0 .. SEEDS-1 for ours and brax's alike (median)"
+    )
+    # About 1 s: brax's 20 evaluation points over a default budget come about 1 s apart, so neither side is timed
+    # more coarsely than the other (at 3 s a seed could reach the bar up to 3 s before it was seen).
+    parser.add_argument("--chunk-seconds", type=float, default=1.0, help="training time between evaluations")
     parser.add_argument("--brax-evals", type=int, default=20, help="evaluation points of the brax run")
     parser.add_argument(
         "--sac-grid",
@@ -904,6 +936,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.target_rmse is not None and not args.target_rmse > 0:
         parser.error(f"--target-rmse: must be a positive RMSE, got {args.target_rmse}")
+    if args.seeds < 1:
+        parser.error(f"--seeds: must be a positive integer, got {args.seeds}")
     if args.target_rmse is not None and args.target_policy:
         parser.error("--target-rmse and --target-policy: give one bar, not both")
     episodes = _eval_episodes(args)  # read before anything runs
@@ -1009,20 +1043,26 @@ def main(argv=None) -> int:
         limits = (threshold["threshold_rmse"], eval_key, episodes, args.max_seconds)
         ours = {}
         for algo in args.ttq_algos:
-            console.print(f"time to threshold: ours, {algo}")
-            ours[algo] = ours_time_to_threshold(
-                *race, algo, *limits, args.chunk_seconds, console, max_crash_rate=threshold["max_crash_rate"]
-            )
+            runs = []
+            for seed in range(args.seeds):
+                console.print(f"time to threshold: ours, {algo}, seed {seed}")
+                runs.append(ours_time_to_threshold(
+                    *race, algo, *limits, args.chunk_seconds, console, seed, max_crash_rate=threshold["max_crash_rate"]
+                ))  # fmt: skip
+            ours[algo] = median_run(runs)
         brax = {}
         if args.brax:
             for rival in dict.fromkeys(BRAX_RIVAL[algo] for algo in args.ttq_algos):
-                console.print(f"time to threshold: brax's {rival}")
-                brax[rival] = brax_time_to_threshold(
-                    *race, rival, *limits, args.brax_evals, console, threshold["max_crash_rate"]
-                )
+                runs = []
+                for seed in range(args.seeds):
+                    console.print(f"time to threshold: brax's {rival}, seed {seed}")
+                    runs.append(brax_time_to_threshold(
+                        *race, rival, *limits, args.brax_evals, console, threshold["max_crash_rate"], seed
+                    ))  # fmt: skip
+                brax[rival] = median_run(runs)
         rows = ttq_rows(ours, brax)
         record["time_to_threshold"] = {
-            **threshold, "ours": ours, "brax": brax,
+            **threshold, "seeds": args.seeds, "ours": ours, "brax": brax,
             "brax_over_ours": {row["algo"]: row["brax_over_ours"] for row in rows},
         }  # fmt: skip
         table = Table(title=f"time to {threshold_label(threshold)}")
@@ -1106,14 +1146,24 @@ def section(record: dict) -> str:
         lines.append("")
     threshold = record.get("time_to_threshold")
     if threshold:
+        seeds = threshold.get("seeds", 1)
         lines += [
-            f"Time to {threshold_label(threshold)}: training wall time, compile included, evaluation excluded.",
+            f"Time to {threshold_label(threshold)}: training wall time, compile included, evaluation excluded; "
+            + (f"the median of seeds 0-{seeds - 1}, ours and brax's alike (a seed that does not reach the bar counts "
+               "as slower than any that does; * marks it below)." if seeds > 1 else "one seed.") + " brax / ours is "
+            "the ratio of the medians.",
             "",
-        ]
+        ]  # fmt: skip
         if record.get("eval_starts"):
             lines += [f"Every evaluation runs one episode from each start in `{Path(record['eval_starts']).name}`.", ""]
-        lines += markdown_table(TTQ_COLUMNS, ttq_table_rows(ttq_rows(threshold["ours"], threshold["brax"])))
+        rows = ttq_rows(threshold["ours"], threshold["brax"])
+        lines += markdown_table(TTQ_COLUMNS, ttq_table_rows(rows))
         lines.append("")
+        if seeds > 1:
+            for row in rows:
+                rival = "" if row["brax"] is None else f"; brax {row['brax_algo'].upper()}: {seed_times(row['brax'])}"
+                lines.append(f"- {row['algo']} per seed: {seed_times(row['ours'])}{rival}")
+            lines.append("")
         for score in threshold.get("reference_policies", []):
             lines.append(
                 f"- reference policy `{Path(score['policy']).name}`: RMSE {score['rmse']:.4f}, crash rate "

@@ -140,10 +140,35 @@ def test_ratio_rows_pair_each_learner_with_its_brax_rival(bench):
     assert (rows["ddpg"]["brax_over_ours"], rows["ddpg"]["relation"]) == (None, "")
     cells = {cells[0]: cells for cells in bench.ttq_table_rows(list(rows.values()))}
     assert cells["td3"][-1] == ">= 2.50" and cells["ppo"][-1] == "5.00"
-    assert cells["ddpg"][1] == "not reached (30.0; best RMSE 0.791)"
+    assert cells["ddpg"][1:3] == ["0 / 1", "not reached (30.0; best RMSE 0.791)"]
     # Without brax's SAC (e.g. --no-brax), its rows have no rival time.
     (row,) = bench.ttq_rows({"sac": run(4.0, True)}, {})
     assert row["brax"] is None and row["brax_over_ours"] is None
+
+
+def test_the_median_of_seeds_orders_unreached_runs_last_and_the_ratio_is_of_the_medians(bench):
+    def run(time_s, reached):
+        return {"reached": reached, "time_s": time_s, "env_steps": int(1000 * time_s), "curve": [{"rmse": 0.5}]}
+
+    # An unreached seed that stopped early (its budget ended at 3 s) is still slower than one that reached at 9 s.
+    ours = bench.median_run([run(4.0, True), run(3.0, False), run(9.0, True)])
+    assert (ours["time_s"], ours["reached"], ours["env_steps"]) == (9.0, True, 9000) and len(ours["runs"]) == 3
+    brax = bench.median_run([run(20.0, True), run(25.0, False), run(30.0, False)])  # most did not reach: a bound
+    assert (brax["time_s"], brax["reached"]) == (25.0, False)
+    assert bench.median_run([run(5.0, True), run(1.0, True), run(2.0, True), run(8.0, True)])["time_s"] == 5.0
+    (row,) = bench.ttq_rows({"ppo": ours}, {"ppo": brax})
+    assert row["brax_over_ours"] == 25.0 / 9.0 and row["relation"] == ">="
+    (cells,) = bench.ttq_table_rows([row])
+    assert cells[1:3] == ["2 / 3", "9.0"] and cells[5] == "1 / 3" and cells[-1] == ">= 2.78"
+    assert bench.seed_times(ours) == "4.0, 3.0*, 9.0 s"
+    record = {
+        **bench.run_record("train"), "overrides": [],
+        "time_to_threshold": {"threshold_rmse": 0.073, "rmse_factor": 1.5, "lqr_rmse": 0.0487, "max_crash_rate": 0.0,
+                              "seeds": 3, "ours": {"ppo": ours}, "brax": {"ppo": brax}},
+    }  # fmt: skip
+    text = bench.section(record)
+    assert "the median of seeds 0-2, ours and brax's alike" in text
+    assert "- ppo per seed: 4.0, 3.0*, 9.0 s; brax PPO: 20.0, 25.0*, 30.0* s" in text
 
 
 def test_page_sections_are_replaced_or_added_never_the_others(bench):
