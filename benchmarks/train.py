@@ -1041,25 +1041,29 @@ def main(argv=None) -> int:
         # Every run: the same env, threshold, evaluation episodes and time limit.
         race = (env, params, cfg)
         limits = (threshold["threshold_rmse"], eval_key, episodes, args.max_seconds)
-        ours = {}
-        for algo in args.ttq_algos:
+        max_crash_rate = threshold["max_crash_rate"]
+
+        def over_seeds(label, run):
+            """``run(seed)`` for each seed, announced; their ``median_run``."""
             runs = []
             for seed in range(args.seeds):
-                console.print(f"time to threshold: ours, {algo}, seed {seed}")
-                runs.append(ours_time_to_threshold(
-                    *race, algo, *limits, args.chunk_seconds, console, seed, max_crash_rate=threshold["max_crash_rate"]
-                ))  # fmt: skip
-            ours[algo] = median_run(runs)
-        brax = {}
-        if args.brax:
-            for rival in dict.fromkeys(BRAX_RIVAL[algo] for algo in args.ttq_algos):
-                runs = []
-                for seed in range(args.seeds):
-                    console.print(f"time to threshold: brax's {rival}, seed {seed}")
-                    runs.append(brax_time_to_threshold(
-                        *race, rival, *limits, args.brax_evals, console, threshold["max_crash_rate"], seed
-                    ))  # fmt: skip
-                brax[rival] = median_run(runs)
+                console.print(f"time to threshold: {label}, seed {seed}")
+                runs.append(run(seed))
+            return median_run(runs)
+
+        ours = {
+            algo: over_seeds(f"ours, {algo}", lambda seed, algo=algo: ours_time_to_threshold(
+                *race, algo, *limits, args.chunk_seconds, console, seed, max_crash_rate=max_crash_rate
+            ))
+            for algo in args.ttq_algos
+        }  # fmt: skip
+        rivals = dict.fromkeys(BRAX_RIVAL[algo] for algo in args.ttq_algos) if args.brax else {}
+        brax = {
+            rival: over_seeds(f"brax's {rival}", lambda seed, rival=rival: brax_time_to_threshold(
+                *race, rival, *limits, args.brax_evals, console, max_crash_rate, seed
+            ))
+            for rival in rivals
+        }  # fmt: skip
         rows = ttq_rows(ours, brax)
         record["time_to_threshold"] = {
             **threshold, "seeds": args.seeds, "ours": ours, "brax": brax,
