@@ -1154,8 +1154,8 @@ def section(record: dict) -> str:
         lines += [
             f"Time to {threshold_label(threshold)}: training wall time, compile included, evaluation excluded; "
             + (f"the median of seeds 0-{seeds - 1}, ours and brax's alike (a seed that does not reach the bar counts "
-               "as slower than any that does; * marks it below)." if seeds > 1 else "one seed.") + " brax / ours is "
-            "the ratio of the medians.",
+               "as slower than any that does; * marks it below). brax / ours is the ratio of the medians."
+               if seeds > 1 else "one seed."),
             "",
         ]  # fmt: skip
         if record.get("eval_starts"):
