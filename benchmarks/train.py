@@ -495,7 +495,8 @@ _BRAX_PPO = {
     "num_updates_per_batch": "num_epochs", "learning_rate": "learning_rate", "entropy_cost": "ent_coef",
     "discounting": "gamma", "gae_lambda": "gae_lambda", "clipping_epsilon": "clip_eps",
     "max_grad_norm": "max_grad_norm", "normalize_observations": "normalize_observations",
-    "reward_scaling": "reward_scale", "num_minibatches": "num_minibatches",
+    "reward_scaling": "reward_scale", "num_minibatches": "num_minibatches", "vf_loss_coefficient": "vf_coef",
+    "normalize_advantage": "normalize_advantages",
 }  # fmt: skip
 
 # brax_sac.train's arguments that are fields of our SAC config: brax's name -> ours. brax has one learning rate for
@@ -514,13 +515,18 @@ def brax_arguments(algo: str, config) -> dict:
     the env, the evaluation points and the callbacks.
 
     Matched: PPO, every ``_BRAX_PPO`` entry, the batch (one unroll of every copy per update, as ours:
-    ``batch_size = num_envs // num_minibatches``), the actor's and the critic's hidden sizes and the activation.
+    ``batch_size = num_envs // num_minibatches``), the value clip (ours ``value_clip_eps``, 0 for none; brax's
+    ``clipping_epsilon_value``, None for none), time-limit ends bootstrapped with the value as ours are (brax's
+    ``bootstrap_on_timeout``, with the value of the step's observation; ours of the final one), the actor's and the
+    critic's hidden sizes and the activation.
     SAC, every ``_BRAX_SAC`` entry, the gradient steps per env step (brax's ``grad_updates_per_step`` per step of
     all ``num_envs`` copies is ``utd * num_envs``), the hidden sizes (actor and both critics) and the activation.
 
-    Not matched (brax has no such option, or fixes it): PPO's value-loss coefficient (brax 0.5) and network
-    initialisation. SAC's temperature (brax starts at alpha = 1 with Adam at 3e-4 towards an entropy target of
-    -0.5 per action dimension; ours ``init_alpha``, ``alpha_lr`` and ``target_entropy_per_action``), the actor's
+    Not matched (brax has no such option, or fixes it): PPO's network initialisation, its exploration (brax's
+    policy network outputs its standard deviation; ours a state-independent log-std from ``init_log_std``) and
+    its learning-rate decay (brax's is constant; ours decays linearly to 0 over the budget with ``lr_decay``).
+    SAC's temperature (brax starts at alpha = 1 with Adam at 3e-4 towards an entropy target of -0.5 per action
+    dimension; ours ``init_alpha``, ``alpha_lr`` and ``target_entropy_per_action``), the actor's
     standard deviation (brax softplus + 0.001; ours a log-std clipped to [``log_std_min``, ``log_std_max``]), the
     gradient-norm clip (brax none), the pre-fill (brax acts with its initial policy; ours uniformly at random),
     time-limit ends (brax leaves them out of the critic loss; ours bootstraps them), and a ``critic_lr`` other than
@@ -540,7 +546,12 @@ def brax_arguments(algo: str, config) -> dict:
             ppo_networks.make_ppo_networks, policy_hidden_layer_sizes=tuple(config.actor_hidden),
             value_hidden_layer_sizes=tuple(config.critic_hidden), activation=activation(config.activation),
         )  # fmt: skip
-        table, extra = _BRAX_PPO, {"batch_size": config.num_envs // config.num_minibatches}
+        table = _BRAX_PPO
+        extra = {
+            "batch_size": config.num_envs // config.num_minibatches,
+            "clipping_epsilon_value": config.value_clip_eps or None,
+            "bootstrap_on_timeout": True,
+        }
     else:
         from brax.training.agents.sac import networks as sac_networks
 

@@ -46,6 +46,25 @@ def test_brax_tables_map_fields_of_our_configs_to_arguments_of_brax_trainers(ben
     assert {"num_envs", "batch_size", "learning_rate", "discounting", "tau", "max_replay_size"} <= set(bench._BRAX_SAC)
 
 
+def test_brax_ppo_arguments_carry_our_values(bench):
+    from brax.training.agents.ppo import train as brax_ppo
+
+    from scg_algorithms.base import parse_options
+    from scg_algorithms.ppo import Config
+
+    options = {"num_envs": 64, "num_minibatches": 4, "vf_coef": 0.7, "normalize_advantages": False,
+               "value_clip_eps": 0.2, "actor_hidden": [32, 16]}  # fmt: skip
+    arguments = bench.brax_arguments("ppo", parse_options(Config, options, "training.ppo"))
+    assert set(arguments) <= set(inspect.signature(brax_ppo.train).parameters)
+    assert (arguments["batch_size"], arguments["vf_loss_coefficient"], arguments["normalize_advantage"]) == (
+        16, 0.7, False,
+    )  # fmt: skip
+    assert arguments["clipping_epsilon_value"] == 0.2 and arguments["bootstrap_on_timeout"] is True
+    assert arguments["network_factory"].keywords["policy_hidden_layer_sizes"] == (32, 16)
+    # Our 0 (no value clip) is brax's None.
+    assert bench.brax_arguments("ppo", parse_options(Config, {}, "training.ppo"))["clipping_epsilon_value"] is None
+
+
 def test_brax_sac_arguments_carry_our_values(bench):
     from brax.training.agents.sac import train as brax_sac
 
