@@ -371,15 +371,22 @@ def _per_call(fn, args, repeats: int, min_time: float) -> float:
     return float(np.median(runs))
 
 
+def _state_errors(u, u_ref, feasible) -> np.ndarray:
+    """Each state's first-input error (N, the largest over the inputs) over the states qpOASES solves
+    (``feasible``)."""
+    return np.abs(u - u_ref).max(axis=1)[feasible]
+
+
 def _error_summary(u, u_ref, feasible) -> dict:
     """Largest and median first-input error (N) over the states qpOASES solves (``feasible``)."""
-    error = np.abs(u - u_ref).max(axis=1)[feasible]
+    error = _state_errors(u, u_ref, feasible)
     return {"max": float(error.max()), "median": float(np.median(error))}
 
 
 def measure_qp_solvers(name: str, with_state: bool, args) -> dict:
-    """QPs/s of linear MPC with admm and qpax at each batch, CasADi qpOASES and OSQP one at a time, the env's
-    steps/s at each batch, and admm's largest first-input difference from qpOASES over ``parity_states`` states."""
+    """QPs/s of linear MPC with admm, ipm and qpax at each batch, CasADi qpOASES and OSQP one at a time, the env's
+    steps/s at each batch, and admm's and ipm's first-input differences from qpOASES over ``parity_states``
+    states."""
     env, params = make_case_env(name, with_state)
     reference = Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
     reference32 = Reference(*(jnp.asarray(a) for a in reference))
@@ -410,7 +417,8 @@ def measure_qp_solvers(name: str, with_state: bool, args) -> dict:
                 feasible.append(info["success"])
         casadi_s[solver] = (time.perf_counter() - tick) / count
     u_ref, feasible = np.array(u_ref), np.array(feasible)
-    error = np.abs(u_admm - u_ref).max(axis=1)[feasible]
+    error = _state_errors(u_admm, u_ref, feasible)
+    ipm_error = _state_errors(u_jax["ipm"], u_ref, feasible)
     lo, hi = controllers["admm"].info["u_low"], controllers["admm"].info["u_high"]
     at_bound = np.any((np.abs(u_ref - lo) < 1e-6) | (np.abs(u_ref - hi) < 1e-6), axis=1)[feasible]
     row.update(
@@ -420,8 +428,8 @@ def measure_qp_solvers(name: str, with_state: bool, args) -> dict:
         parity_max_error_N=float(error.max()),
         parity_median_error_N=float(np.median(error)),
         throughput_error_N={setting: _error_summary(u_jax[setting], u_ref, feasible) for setting in THROUGHPUT},
-        ipm_max_error_N=float(np.abs(u_jax["ipm"] - u_ref).max(axis=1)[feasible].max()),
-        ipm_states_beyond_1e3=int((np.abs(u_jax["ipm"] - u_ref).max(axis=1)[feasible] > 1e-3).sum()),
+        ipm_max_error_N=float(ipm_error.max()),
+        ipm_states_beyond_1e3=int((ipm_error > 1e-3).sum()),
         qpoases_qps=1.0 / casadi_s["qpoases"],
         osqp_qps=1.0 / casadi_s["osqp"],
     )
