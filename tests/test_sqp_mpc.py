@@ -19,8 +19,8 @@ CASES = {
 }
 
 
-@pytest.mark.parametrize("system", list(CASES))
-def test_sqp_first_input_equals_ipopts(system):
+@pytest.mark.parametrize("system, qp_solver", [(system, "admm") for system in CASES] + [("cartpole", "ipm")])
+def test_sqp_first_input_equals_ipopts(system, qp_solver):
     # Float64; the cart-pole's inputs saturate at 10 N from many of these states (the nonlinear swing-up region),
     # the quadrotor's at its motor limits. IPOPT runs to 1e-10 (at its default 1e-6 its barrier leaves one of these
     # quadrotor inputs 3.4e-4 N inside the 0.05632 N bound that SQP and IPOPT at 1e-10 put it on); SQP until no
@@ -31,7 +31,7 @@ def test_sqp_first_input_equals_ipopts(system):
     pairs = zip(steps, states, strict=True)
     u_ipopt = np.array([ipopt.act(ipopt.reset(None, reference), x, k, reference)[0] for k, x in pairs])
     with jax.enable_x64(True):
-        sqp = make_nonlinear_mpc(env, params, {"horizon": 20, "solver": "sqp"})
+        sqp = make_nonlinear_mpc(env, params, {"horizon": 20, "solver": "sqp", "qp_solver": qp_solver})
         ref64 = Reference(*(jnp.asarray(a) for a in reference))
         act = jax.jit(jax.vmap(lambda x, k: sqp.act(sqp.reset(None, ref64), x, k, ref64)))
         u_sqp, state = act(jnp.asarray(states), jnp.asarray(steps))
@@ -55,12 +55,22 @@ def ipopt_episodes(cartpole_episodes):
     return evaluate(env, params, ipopt, jax.random.key(0), 2, measure_time=False)
 
 
-# The defaults, and the QP without its active-set polish (the benchmark's cheaper cart-pole setting).
-@pytest.mark.parametrize("overrides", [{}, {"qp_polish_rounds": 0}], ids=["default", "no_polish"])
+# The defaults, the QP without its active-set polish (the benchmark's cheaper cart-pole setting), the interior point
+# with its defaults and with 4 iterations and no polish (the benchmark's fast setting).
+RTI_OVERRIDES = {
+    "default": {},
+    "no_polish": {"qp_polish_rounds": 0},
+    "ipm": {"qp_solver": "ipm"},
+    "ipm_4_iterations": {"qp_solver": "ipm", "ipm_max_iter": 4, "ipm_polish_rounds": 0},
+}
+
+
+@pytest.mark.parametrize("overrides", list(RTI_OVERRIDES.values()), ids=list(RTI_OVERRIDES))
 def test_sqp_rti_tracks_as_well_as_ipopt_on_the_same_episodes(cartpole_episodes, ipopt_episodes, overrides):
     # Float32 SQP-RTI against IPOPT on the same 2 seeded cart-pole stabilisation episodes (the benchmark also runs
     # the 2D quadrotor's circle and the 3D quadrotor's stabilisation: ratios 0.9999 and 1.0002 there). Measured on
-    # these 2 episodes: RMSE ratio 1.0000 (bound 1.05), inputs within 1.1e-6 N (bound 2e-2 N); the same on 4.
+    # these 2 episodes: RMSE ratio 1.0000 (bound 1.05), inputs within 1.1e-6 N (bound 2e-2 N; both interior-point
+    # settings: 1.5e-6 and 1.9e-6 N); the same on 4.
     env, params = cartpole_episodes
     ipopt = ipopt_episodes
     rti_controller = make_nonlinear_mpc(env, params, {"horizon": 20, "solver": "sqp_rti", **overrides})
@@ -106,6 +116,13 @@ def test_sqp_rti_steps_never_retrace_and_repeat_exactly(cartpole_episodes):
         ({"solver": "sqp", "sqp_max_iter": 0}, r"controllers\.nonlinear_mpc\.sqp_max_iter"),
         ({"solver": "sqp", "qp_tol": -1.0}, r"controllers\.nonlinear_mpc\.qp_tol: must be >= 0"),
         ({"solver": "sqp_rti", "qp_polish_rounds": -1}, r"controllers\.nonlinear_mpc\.qp_polish_rounds: must be >= 0"),
+        ({"solver": "sqp_rti", "qp_solver": "osqp"}, r"controllers\.nonlinear_mpc\.qp_solver: .*admm, ipm"),
+        ({"solver": "sqp_rti", "qp_solver": "ipm", "ipm_max_iter": 0}, r"controllers\.nonlinear_mpc\.ipm_max_iter"),
+        ({"solver": "sqp", "ipm_polish_rounds": -2}, r"controllers\.nonlinear_mpc\.ipm_polish_rounds: must be >= 0"),
+        (
+            {"solver": "sqp_rti", "qp_solver": "ipm", "soft_constraints": True},
+            r"controllers\.nonlinear_mpc\.soft_constraints: qp_solver ipm takes hard rows only",
+        ),
     ],
 )
 def test_bad_solver_options_name_the_field(cartpole_episodes, options, message):

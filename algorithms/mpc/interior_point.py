@@ -261,21 +261,31 @@ def _factorize(qp: HorizonQP, rows: _Rows, w, scale):
         M = _mm(_T(rows.C), wr[..., None] * rows.D)
     else:
         M = jnp.zeros((N, nx, nu), Q.dtype)
+    cross = rows.C.shape[1] > 0
+    # The cost-to-go in Joseph's form (below) where rows weigh on states; where only inputs carry weights the
+    # difference form keeps its definiteness and costs fewer products.
+    joseph = bool(rows.rows) or cross
 
     def stage(P_next, inputs):
         A, B, Qk, Rk, Mk = inputs
         P = Qk + P_next
-        PB = _mm(P, B) + Mk
-        Huu = Rk + _mm(_T(B), PB) + _mm(_T(Mk), B)
+        PB = _mm(P, B) + Mk if cross else _mm(P, B)
+        Huu = Rk + _mm(_T(B), PB) + _mm(_T(Mk), B) if cross else Rk + _mm(_T(B), PB)
         Hux = _mm(_T(PB), A)
         Hinv = _spd_inverse(0.5 * (Huu + _T(Huu)))
         K = -_mm(Hinv, Hux)
         # The cost-to-go as a sum of quadratic forms of the closed loop (Joseph's form), not A^T P A - Hux^T Huu^-1
         # Hux: with the barrier's weights at 1e8 the difference loses its definiteness in float32 and the next
         # stage's Cholesky breaks; the sum stays positive semidefinite.
-        closed = A + _mm(B, K)
-        MK = _mm(Mk, K)
-        P_prev = _mm(_T(closed), _mm(P, closed)) + _mm(_T(K), _mm(Rk, K)) + _mm(_T(closed), MK) + _mm(_T(MK), closed)
+        if joseph:
+            closed = A + _mm(B, K)
+            P_prev = _mm(_T(closed), _mm(P, closed)) + _mm(_T(K), _mm(Rk, K))
+            if cross:
+                MK = _mm(Mk, K)
+                P_prev = P_prev + _mm(_T(closed), MK) + _mm(_T(MK), closed)
+        else:
+            # Weights on inputs only: the difference form, about 0.6x the products of Joseph's.
+            P_prev = _mm(_T(A), _mm(P, A)) + _mm(_T(Hux), K)
         return 0.5 * (P_prev + _T(P_prev)), _Factor(Hinv, K, Hux)
 
     _, factor = lax.scan(stage, jnp.zeros((nx, nx), Q.dtype), (qp.A, qp.B, Q, R, M), reverse=True)

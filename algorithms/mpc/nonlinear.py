@@ -66,6 +66,7 @@ from scg_algorithms.base import option, parse_options, positive, state_from_obs
 PATH = "controllers.nonlinear_mpc"
 SOURCES = ("solution", "last_iterate", "shifted_plan", "equilibrium")
 SOLVERS = ("ipopt", "sqp", "sqp_rti")
+QP_SOLVERS = ("admm", "ipm")
 
 
 def _vector(dm) -> np.ndarray:
@@ -116,6 +117,14 @@ class Options(setup.MPCOptions):
         6, "sqp, sqp_rti: rounds of the QP's active-set polish after its ADMM, at most (0: none)"
     )
     merit_weight: float = option(1e4, "sqp, sqp_rti: weight of the l1 constraint violation in the line search's merit")
+    qp_solver: str = option(
+        "admm",
+        "sqp, sqp_rti: the QP solver, admm (scg_algorithms.mpc.structured, warm-started) or ipm "
+        "(scg_algorithms.mpc.interior_point, Riccati steps, hard rows only)",
+        choices=QP_SOLVERS,
+    )
+    ipm_max_iter: int = option(15, "qp_solver ipm: interior-point iterations at most per QP")
+    ipm_polish_rounds: int = option(3, "qp_solver ipm: rounds of its active-set polish (0: none)")
 
     def _check(self, path: str) -> None:
         positive(f"{path}.horizon", self.horizon)
@@ -124,13 +133,17 @@ class Options(setup.MPCOptions):
         positive(f"{path}.warm_mu_init", self.warm_mu_init)
         positive(f"{path}.soft_penalty", self.soft_penalty)
         positive(f"{path}.fallback_tol", self.fallback_tol)
-        for name in ("sqp_max_iter", "qp_max_iter", "sqp_tol", "merit_weight"):
+        for name in ("sqp_max_iter", "qp_max_iter", "sqp_tol", "merit_weight", "ipm_max_iter"):
             positive(f"{path}.{name}", getattr(self, name))
-        for name in ("qp_tol", "qp_polish_rounds"):
+        for name in ("qp_tol", "qp_polish_rounds", "ipm_polish_rounds"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
         if self.constraint_margin < 0:
             raise ValueError(f"{path}.constraint_margin: must be >= 0, got {self.constraint_margin!r}")
+        if self.qp_solver == "ipm" and self.soft_constraints:
+            raise ValueError(
+                f"{path}.soft_constraints: qp_solver ipm takes hard rows only; use qp_solver admm for soft constraints"
+            )
 
 
 @contextlib.contextmanager

@@ -52,7 +52,7 @@ from jax import lax
 
 from scg_algorithms import controller_setup as setup
 from scg_algorithms.base import JaxController, state_from_obs
-from scg_algorithms.mpc import structured
+from scg_algorithms.mpc import interior_point, structured
 from scg_jax import constraints as constraints_lib
 from scg_jax.backends import jax_backend
 
@@ -149,6 +149,7 @@ class _Setup(NamedTuple):
     opts: Any
     layout: Any
     settings: Any
+    ipm: Any  # interior_point.IPMSettings when qp_solver is ipm, else None (the ADMM's settings)
     horizon: int
     m: int  # general constraint rows kept in the QP
     soft: bool
@@ -258,6 +259,9 @@ def sqp_mpc_builder(env, prior_params, opts, name: str = "nonlinear_mpc", adapti
         opts=opts,
         layout=layout,
         settings=settings,
+        ipm=interior_point.IPMSettings(max_iterations=opts.ipm_max_iter, polish_rounds=opts.ipm_polish_rounds)
+        if opts.qp_solver == "ipm"
+        else None,
         horizon=H,
         m=m,
         soft=soft,
@@ -373,6 +377,19 @@ def _merit(model: _Model, x, u, x0, window, row_margins):
     return J + s.opts.merit_weight * (defects + violation)
 
 
+def _solve_qp(s: _Setup, qp, x0, warm) -> structured.Solution:
+    """The QP by the ADMM (warm-started) or, with ``qp_solver: ipm``, by the interior point (cold; ``warm`` is
+    passed through for the next step)."""
+    if s.ipm is None:
+        return structured.solve(s.layout, qp, x0, warm, s.settings)
+    sol = interior_point.solve(s.layout, qp, x0, s.ipm)
+    return structured.Solution(
+        u=sol.u, x=sol.x, slack=jnp.zeros_like(sol.multipliers), multipliers=sol.multipliers, warm=warm,
+        status=sol.status, iterations=sol.iterations, primal_residual=sol.primal_residual,
+        dual_residual=sol.dual_residual, violation=sol.violation,
+    )  # fmt: skip
+
+
 def _iteration(model: _Model, x0, window, x_bar, u_bar, warm, margins, lin=None, full_step: bool = False):
     """One SQP iteration: the QP about ``(x_bar, u_bar)`` (``lin``: the model's ``_jacobians`` there, when known),
     then a step along it chosen by the merit, or (``full_step``, static: SQP-RTI) the full step, the merit not
@@ -382,7 +399,7 @@ def _iteration(model: _Model, x0, window, x_bar, u_bar, warm, margins, lin=None,
     row_margins, stage_box = margins[:, s.keep], _tightened_box(s, margins)
     qp = _linearize(model, x_bar, u_bar, row_margins, stage_box, lin)
     qp = qp._replace(q=-jnp.einsum("kxy,ky->kx", s.Qs, window[1:]))
-    sol = structured.solve(s.layout, qp, x0, warm, s.settings)
+    sol = _solve_qp(s, qp, x0, warm)
     ok = (sol.status == structured.CONVERGED) | (sol.status == structured.MAX_ITERATIONS)
     ok = ok & (sol.violation <= s.opts.fallback_tol) & jnp.all(jnp.isfinite(sol.u)) & jnp.all(jnp.isfinite(sol.x))
     if not full_step:
