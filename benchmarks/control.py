@@ -522,7 +522,17 @@ def measure_gp_rti(args) -> dict:
 
 # SQP-RTI's settings: its defaults, and its QP without the active-set polish (on the cart-pole the same closed loop
 # at about 0.6x the time per step; the 2D quadrotor's tracking needs the polish: RMSE 3.3x without it).
-RTI_SETTINGS = {"default": {}, "qp_polish_rounds: 0": {"qp_polish_rounds": 0}}
+# The interior point (qp_solver: ipm, a cold start at every step): its defaults, and 4 iterations without the polish,
+# the fewest that kept every RMSE within 1.005x IPOPT's in a sweep of 1-6 (2 episodes each: the 3D quadrotor took 1.033x
+# with 1 iteration, 1.017x with 3).
+RTI_SETTINGS = {
+    "default": {},
+    "qp_polish_rounds: 0": {"qp_polish_rounds": 0},
+    "qp_solver: ipm": {"qp_solver": "ipm"},
+    "qp_solver: ipm, ipm_max_iter: 4, ipm_polish_rounds: 0": {
+        "qp_solver": "ipm", "ipm_max_iter": 4, "ipm_polish_rounds": 0,
+    },
+}  # fmt: skip
 
 
 def measure_rti(name: str, args) -> list[dict]:

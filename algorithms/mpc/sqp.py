@@ -17,7 +17,8 @@ the QP, linearised at every iteration.
 ``jax.jacfwd`` (stage by stage, ``vmap``-ed), ``x_{i+1} = A_i x_i + B_i u_i + c_i`` with
 ``c_i = f_d(x_bar_i, u_bar_i) - A_i x_bar_i - B_i u_bar_i``, solves the QP (in the absolute inputs, pre-stabilised
 with the goal's LQR gain for float32's sake) with ``structured.solve``, warm-started from the previous QP's rows
-and multipliers, and moves the plan toward the QP's by the largest step ``a`` in ``1, 1/2, ..., 2^-7`` that lowers
+and multipliers (or, with ``qp_solver="ipm"``, with ``interior_point.solve`` from a cold start: Riccati steps on the
+stage-wise problem, no condensing, at most ``ipm_max_iter`` iterations; hard rows only), and moves the plan toward the QP's by the largest step ``a`` in ``1, 1/2, ..., 2^-7`` that lowers
 the l1 merit ``J + mu (sum |x_{i+1} - f_d(x_i, u_i)|_1 + sum max(g + margin, 0))`` (hard rows; ``mu =
 merit_weight``), or by the smallest when none does.
 
