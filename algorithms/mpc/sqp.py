@@ -18,9 +18,10 @@ the QP, linearised at every iteration.
 ``c_i = f_d(x_bar_i, u_bar_i) - A_i x_bar_i - B_i u_bar_i``, solves the QP (in the absolute inputs, pre-stabilised
 with the goal's LQR gain for float32's sake) with ``structured.solve``, warm-started from the previous QP's rows
 and multipliers (or, with ``qp_solver="ipm"``, with ``interior_point.solve`` from a cold start: Riccati steps on the
-stage-wise problem, no condensing, at most ``ipm_max_iter`` iterations; hard rows only), and moves the plan toward the QP's by the largest step ``a`` in ``1, 1/2, ..., 2^-7`` that lowers
-the l1 merit ``J + mu (sum |x_{i+1} - f_d(x_i, u_i)|_1 + sum max(g + margin, 0))`` (hard rows; ``mu =
-merit_weight``), or by the smallest when none does.
+stage-wise problem, no condensing, at most ``ipm_max_iter`` iterations; hard rows only), and moves the plan toward
+the QP's by the largest step ``a`` in ``1, 1/2, ..., 2^-7`` that lowers the l1 merit
+``J + mu (sum |x_{i+1} - f_d(x_i, u_i)|_1 + sum max(g + margin, 0))`` (hard rows; ``mu = merit_weight``), or by the
+smallest when none does.
 
 - ``solver="sqp"``: iterates until the largest input change of an iteration is below ``sqp_tol`` (N) or
   ``sqp_max_iter`` iterations (a ``lax.while_loop``; under ``vmap`` the batch runs until its slowest copy stops).
