@@ -117,12 +117,8 @@ class Options(setup.MPCOptions):
         6, "sqp, sqp_rti: rounds of the QP's active-set polish after its ADMM, at most (0: none)"
     )
     merit_weight: float = option(1e4, "sqp, sqp_rti: weight of the l1 constraint violation in the line search's merit")
-    qp_solver: str = option(
-        "admm",
-        "sqp, sqp_rti: the QP solver, admm (scg_algorithms.mpc.structured, warm-started) or ipm "
-        "(scg_algorithms.mpc.interior_point, Riccati steps, hard rows only)",
-        choices=QP_SOLVERS,
-    )
+    # admm: scg_algorithms.mpc.structured, warm-started; ipm: scg_algorithms.mpc.interior_point, hard rows only.
+    qp_solver: str = option("admm", "sqp, sqp_rti: the QP solver, admm or ipm (Riccati steps)", choices=QP_SOLVERS)
     ipm_max_iter: int = option(15, "qp_solver ipm: interior-point iterations at most per QP")
     ipm_polish_rounds: int = option(3, "qp_solver ipm: rounds of its active-set polish (0: none)")
 
