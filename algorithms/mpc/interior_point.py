@@ -262,9 +262,7 @@ def _factorize(qp: HorizonQP, rows: _Rows, w, scale):
     else:
         M = jnp.zeros((N, nx, nu), Q.dtype)
     cross = rows.C.shape[1] > 0
-    # The cost-to-go in Joseph's form (below) where rows weigh on states; where only inputs carry weights the
-    # difference form keeps its definiteness and costs fewer products.
-    joseph = bool(rows.rows) or cross
+    joseph = bool(rows.rows) or cross  # rows weigh on states: the cost-to-go in Joseph's form (below)
 
     def stage(P_next, inputs):
         A, B, Qk, Rk, Mk = inputs
@@ -274,10 +272,10 @@ def _factorize(qp: HorizonQP, rows: _Rows, w, scale):
         Hux = _mm(_T(PB), A)
         Hinv = _spd_inverse(0.5 * (Huu + _T(Huu)))
         K = -_mm(Hinv, Hux)
-        # The cost-to-go as a sum of quadratic forms of the closed loop (Joseph's form), not A^T P A - Hux^T Huu^-1
-        # Hux: with the barrier's weights at 1e8 the difference loses its definiteness in float32 and the next
-        # stage's Cholesky breaks; the sum stays positive semidefinite.
         if joseph:
+            # The cost-to-go as a sum of quadratic forms of the closed loop (Joseph's form), not A^T P A - Hux^T
+            # Huu^-1 Hux: with the barrier's weights on state rows at 1e8 the difference loses its definiteness in
+            # float32 and the next stage's Cholesky breaks; the sum stays positive semidefinite.
             closed = A + _mm(B, K)
             P_prev = _mm(_T(closed), _mm(P, closed)) + _mm(_T(K), _mm(Rk, K))
             if cross:
