@@ -93,7 +93,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     parser.add_argument("--systems", nargs="+", default=list(CONFIGS), choices=list(CONFIGS), help="systems")
     parser.add_argument(
-        "--parts", nargs="+", default=["nonlinear", "linear"], choices=["nonlinear", "linear", "solvers"]
+        "--parts",
+        nargs="+",
+        default=["nonlinear", "linear"],
+        choices=["nonlinear", "linear", "solvers", "rti"],
+        help="rti: the solvers part's SQP-RTI against IPOPT alone, on --solver-systems (writes sqp_rti.json)",
     )
     parser.add_argument("--solver-systems", nargs="+", default=list(CASES), choices=list(CASES), help="solvers part")
     parser.add_argument("--batches", nargs="+", type=int, default=[1, 1024, 4096], help="solvers part: copies")
@@ -524,13 +528,20 @@ def measure_gp_rti(args) -> dict:
 # at about 0.6x the time per step; the 2D quadrotor's tracking needs the polish: RMSE 3.3x without it).
 # The interior point (qp_solver: ipm, a cold start at every step): its defaults, and 4 iterations without the polish,
 # the fewest that kept every RMSE within 1.005x IPOPT's in a sweep of 1-6 (2 episodes each: the 3D quadrotor took 1.033x
-# with 1 iteration, 1.017x with 3).
+# with 1 iteration, 1.017x with 3), with and without iterative refinement (the same RMSEs to 5 digits without it), and
+# 3 iterations without refinement.
 RTI_SETTINGS = {
     "default": {},
     "qp_polish_rounds: 0": {"qp_polish_rounds": 0},
     "qp_solver: ipm": {"qp_solver": "ipm"},
     "qp_solver: ipm, ipm_max_iter: 4, ipm_polish_rounds: 0": {
         "qp_solver": "ipm", "ipm_max_iter": 4, "ipm_polish_rounds": 0,
+    },
+    "qp_solver: ipm, ipm_max_iter: 4, ipm_polish_rounds: 0, ipm_refinement_steps: 0": {
+        "qp_solver": "ipm", "ipm_max_iter": 4, "ipm_polish_rounds": 0, "ipm_refinement_steps": 0,
+    },
+    "qp_solver: ipm, ipm_max_iter: 3, ipm_polish_rounds: 0, ipm_refinement_steps: 0": {
+        "qp_solver": "ipm", "ipm_max_iter": 3, "ipm_polish_rounds": 0, "ipm_refinement_steps": 0,
     },
 }  # fmt: skip
 
@@ -811,6 +822,20 @@ def main(argv=None) -> int:
                 highlight=False,
             )
         rows.append(row)
+
+    if "rti" in args.parts:
+        meta["config"].update(rti_episodes=args.rti_episodes)
+        rti_rows = [r for name in args.solver_systems if name in RTI_TASKS for r in measure_rti(name, args)]
+        for r in rti_rows:
+            console.print(
+                f"{r['system']:<13} SQP-RTI ({r['setting']}): RMSE {r['rmse_ratio']:.4f}x IPOPT's, time per copy and "
+                f"step 1/{1 / r['time_ratio']:.0f} of IPOPT's ({r['sqp_rti_s_per_copy_step_1024']:.2e} s against "
+                f"{r['ipopt_s_per_step']:.2e} s)",
+                highlight=False,
+            )
+        write_json(args.json.with_name("sqp_rti.json"), {**meta, "rti": rti_rows})
+        if set(args.parts) == {"rti"}:
+            return 0
 
     if "solvers" in args.parts:
         meta["config"].update(batches=args.batches, parity_states=args.parity_states, rti_episodes=args.rti_episodes)

@@ -46,7 +46,12 @@ def test_one_active_input_bound_matches_the_hand_solved_kkt_system():
     layout = S.Layout(horizon=2, nx=2, nu=1)
     qp = _qp(layout, A, B, Q, R, u_box=1.0)
     with jax.enable_x64(True):
-        for settings in (ipm.IPMSettings(polish_rounds=0), ipm.IPMSettings()):
+        # Without refinement too (a float64 Riccati step is exact to round-off).
+        for settings in (
+            ipm.IPMSettings(polish_rounds=0, refinement_steps=0),
+            ipm.IPMSettings(polish_rounds=0),
+            ipm.IPMSettings(),
+        ):
             sol = jax.tree.map(np.asarray, _solve(layout, qp, jnp.array([1.0, 0.0]), settings))
             assert int(sol.status) == S.CONVERGED
             np.testing.assert_allclose(sol.u[:, 0], [-1.0, -0.35600907], atol=1e-6)
@@ -145,6 +150,8 @@ def test_bad_settings_and_soft_rows_name_the_field():
         ipm.IPMSettings(tol=0.0)
     with pytest.raises(ValueError, match=r"IPMSettings\.polish_rounds: must be >= 0"):
         ipm.IPMSettings(polish_rounds=-1)
+    with pytest.raises(ValueError, match=r"IPMSettings\.refinement_steps: must be >= 0"):
+        ipm.IPMSettings(refinement_steps=-1)
     layout = S.Layout(horizon=2, nx=1, nu=1, x_rows=(0,), soft_x=(True,), l1=1.0)
     with pytest.raises(ValueError, match=r"soft rows are not supported.*Layout\.soft_x"):
         ipm.check_layout(layout)

@@ -56,12 +56,12 @@ def ipopt_episodes(cartpole_episodes):
 
 
 # The defaults, the QP without its active-set polish (the benchmark's cheaper cart-pole setting), the interior point
-# with its defaults and with 4 iterations and no polish (the benchmark's fast setting).
+# with its defaults and with 4 iterations, no polish and no refinement (the benchmark's fast setting).
 RTI_OVERRIDES = {
     "default": {},
     "no_polish": {"qp_polish_rounds": 0},
     "ipm": {"qp_solver": "ipm"},
-    "ipm_4_iterations": {"qp_solver": "ipm", "ipm_max_iter": 4, "ipm_polish_rounds": 0},
+    "ipm_4_iterations": {"qp_solver": "ipm", "ipm_max_iter": 4, "ipm_polish_rounds": 0, "ipm_refinement_steps": 0},
 }
 
 
@@ -120,6 +120,10 @@ def test_sqp_rti_steps_never_retrace_and_repeat_exactly(cartpole_episodes):
         ({"solver": "sqp_rti", "qp_solver": "ipm", "ipm_max_iter": 0}, r"controllers\.nonlinear_mpc\.ipm_max_iter"),
         ({"solver": "sqp", "ipm_polish_rounds": -2}, r"controllers\.nonlinear_mpc\.ipm_polish_rounds: must be >= 0"),
         (
+            {"solver": "sqp_rti", "qp_solver": "ipm", "ipm_refinement_steps": -1},
+            r"controllers\.nonlinear_mpc\.ipm_refinement_steps: must be >= 0",
+        ),
+        (
             {"solver": "sqp_rti", "qp_solver": "ipm", "soft_constraints": True},
             r"controllers\.nonlinear_mpc\.soft_constraints: qp_solver ipm takes hard rows only",
         ),
@@ -160,3 +164,32 @@ def test_the_shifted_plan_is_the_old_one_advanced_with_its_tail_stepped_by_the_m
         np.testing.assert_array_equal(np.asarray(x[i]), x_ref)
         np.testing.assert_array_equal(np.asarray(u[i]), u_ref)
     np.testing.assert_array_equal(np.asarray(x[0])[:, 0], [7.0, 20.0, 30.0, 40.0, 50.0, 105.0])  # 2 * 50 + 5
+
+
+def test_batched_jacobians_in_chunks_equal_the_per_copy_ones(monkeypatch):
+    # Under vmap the prior's Jacobians are taken JACOBIAN_CHUNK stages at a time (sqp._jacobians): with chunks of 4,
+    # 3 copies of 5 stages are 3 chunks and a remainder of 3. The 3D quadrotor (trigonometric, 16 tangents), float32:
+    # equal to the Jacobians of each copy taken alone, also under a second vmap (2 groups of 3 copies).
+    import types
+
+    from scg_algorithms import controller_setup as setup
+    from scg_algorithms.mpc import sqp
+
+    env = scg_jax.make("quadrotor_3d")
+    params = env.default_params
+    model = types.SimpleNamespace(step=setup.prior_step_fn(env, params), prediction=None)
+    monkeypatch.setattr(sqp, "JACOBIAN_CHUNK", 4)
+    rng = np.random.default_rng(0)
+    x = jnp.asarray(rng.normal(scale=0.3, size=(2, 3, 5, env.nx)), jnp.float32)
+    u = jnp.asarray(rng.uniform(0.05, 0.1, size=(2, 3, 5, env.nu)), jnp.float32)
+    per_copy = [[sqp._jacobians(model, x[g, c], u[g, c]) for c in range(3)] for g in range(2)]
+    batched = jax.jit(jax.vmap(lambda x, u: sqp._jacobians(model, x, u)))(x[0], u[0])
+    nested = jax.jit(jax.vmap(jax.vmap(lambda x, u: sqp._jacobians(model, x, u))))(x, u)
+    for g in range(2):
+        for c in range(3):
+            for i, name in enumerate(("A", "B", "f")):
+                expected = np.asarray(per_copy[g][c][i])
+                np.testing.assert_allclose(np.asarray(nested[i][g, c]), expected, rtol=1e-6, atol=1e-6, err_msg=name)
+                if g == 0:
+                    np.testing.assert_allclose(np.asarray(batched[i][c]), expected, rtol=1e-6, atol=1e-6)
+    assert np.max(np.abs(np.asarray(per_copy[0][0][1]))) > 1e-3  # the inputs move the states within a step

@@ -20,9 +20,10 @@ and every step is one of the linear model), so the Newton step of the KKT condit
 (``r`` the primal residuals, ``rc`` the complementarity targets), which one backward Riccati recursion and one
 forward rollout solve in ``O(N (nx + nu)^3)``. A general row couples ``u_k`` and ``x_{k+1}``: its weight enters the
 recursion as the cross term ``C^T W D``. The factorisation (the matrix recursion; an unrolled ``nu x nu`` Cholesky
-per stage) is computed once per iteration and serves the predictor and the corrector, each solved with one step of
-iterative refinement; both take one step length, ``STEP_FRACTION`` of the largest that keeps every slack and
-multiplier positive. The objective is scaled so that the unconstrained problem's smallest input curvature is 1.
+per stage) is computed once per iteration and serves the predictor and the corrector, each solved with
+``IPMSettings.refinement_steps`` steps of iterative refinement (default 1); both take one step length,
+``STEP_FRACTION`` of the largest that keeps every slack and multiplier positive. The objective is scaled so that the
+unconstrained problem's smallest input curvature is 1.
 
 **Active-set polish.** In float32 the barrier's weights on the rows that end active (``lam / s``, past 1e8 as the
 complementarity falls) cost the recursion its digits, and on a few problems the iterate stops improving about 1e-3 N
@@ -81,23 +82,27 @@ class IPMSettings:
     """Interior-point settings (static).
 
     Attributes:
-        max_iterations: cap on iterations (each: one Riccati factorisation and four solves).
+        max_iterations: cap on iterations (each: one Riccati factorisation and 2 (1 + refinement_steps) solves).
         tol: the largest complementarity product ``s lam`` (scaled) of a converged iterate.
         residual_tol: the largest primal residual and relative reduced gradient of a converged iterate; ``None``: the
             square root of the dtype's resolution (3.5e-4 in float32, 1.5e-8 in float64).
         polish_rounds: rounds of the active-set polish after the iterations (0: none).
+        refinement_steps: steps of iterative refinement of each Newton step (each: one more Riccati solve). 0 suits
+            a few iterations that stop before the barrier's weights grow large (SQP-RTI's QPs).
     """
 
     max_iterations: int = 30
     tol: float = 1e-6
     residual_tol: float | None = None
     polish_rounds: int = 3
+    refinement_steps: int = 1
 
     def __post_init__(self):
         if self.max_iterations < 1:
             raise ValueError(f"IPMSettings.max_iterations: must be >= 1, got {self.max_iterations!r}")
-        if self.polish_rounds < 0:
-            raise ValueError(f"IPMSettings.polish_rounds: must be >= 0, got {self.polish_rounds!r}")
+        for name in ("polish_rounds", "refinement_steps"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"IPMSettings.{name}: must be >= 0, got {getattr(self, name)!r}")
         for name in ("tol", "residual_tol"):
             if getattr(self, name) is not None and not getattr(self, name) > 0:
                 raise ValueError(f"IPMSettings.{name}: must be positive, got {getattr(self, name)!r}")
@@ -424,11 +429,12 @@ def solve(layout: Layout, qp: HorizonQP, x_init, settings: IPMSettings = IPMSett
             tx, tu = _transpose(rows, t, nx)
             gx, gu = m.gx + tx, m.gu + tu
             dx, du = _step(qp, factor, gx, gu)
-            # One step of iterative refinement: in float32, with the barrier's weights past 1e6, the recursion
-            # solves the step to a few digits; a solve of the model's residual recovers most of the rest.
-            hx, hu = _hessian_product(weights, dx, du)
-            ex, eu = _step(qp, factor, hx + gx, hu + gu)
-            dx, du = dx + ex, du + eu
+            # Iterative refinement: in float32, with the barrier's weights past 1e6, the recursion solves the step
+            # to a few digits; a solve of the model's residual recovers most of the rest.
+            for _ in range(settings.refinement_steps):
+                hx, hu = _hessian_product(weights, dx, du)
+                ex, eu = _step(qp, factor, hx + gx, hu + gu)
+                dx, du = dx + ex, du + eu
             ds = -m.r - mask * e * _values(rows, dx, du)[:, None, :]
             dlam = -(rc + it.lam * ds) / it.s
             return dx, du, ds, dlam

@@ -121,6 +121,7 @@ class Options(setup.MPCOptions):
     qp_solver: str = option("admm", "sqp, sqp_rti: the QP solver, admm or ipm (Riccati steps)", choices=QP_SOLVERS)
     ipm_max_iter: int = option(15, "qp_solver ipm: interior-point iterations at most per QP")
     ipm_polish_rounds: int = option(3, "qp_solver ipm: rounds of its active-set polish (0: none)")
+    ipm_refinement_steps: int = option(1, "qp_solver ipm: steps of iterative refinement of each Newton step")
 
     def _check(self, path: str) -> None:
         positive(f"{path}.horizon", self.horizon)
@@ -131,7 +132,7 @@ class Options(setup.MPCOptions):
         positive(f"{path}.fallback_tol", self.fallback_tol)
         for name in ("sqp_max_iter", "qp_max_iter", "sqp_tol", "merit_weight", "ipm_max_iter"):
             positive(f"{path}.{name}", getattr(self, name))
-        for name in ("qp_tol", "qp_polish_rounds", "ipm_polish_rounds"):
+        for name in ("qp_tol", "qp_polish_rounds", "ipm_polish_rounds", "ipm_refinement_steps"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
         if self.constraint_margin < 0:
