@@ -182,9 +182,11 @@ def test_batched_jacobians_in_chunks_equal_the_per_copy_ones(monkeypatch):
     rng = np.random.default_rng(0)
     x = jnp.asarray(rng.normal(scale=0.3, size=(2, 3, 5, env.nx)), jnp.float32)
     u = jnp.asarray(rng.uniform(0.05, 0.1, size=(2, 3, 5, env.nu)), jnp.float32)
-    per_copy = [[sqp._jacobians(model, x[g, c], u[g, c]) for c in range(3)] for g in range(2)]
-    batched = jax.jit(jax.vmap(lambda x, u: sqp._jacobians(model, x, u)))(x[0], u[0])
-    nested = jax.jit(jax.vmap(jax.vmap(lambda x, u: sqp._jacobians(model, x, u))))(x, u)
+    jacobians = lambda x, u: sqp._jacobians(model, x, u)  # noqa: E731
+    one = jax.jit(jacobians)
+    per_copy = [[one(x[g, c], u[g, c]) for c in range(3)] for g in range(2)]
+    batched = jax.jit(jax.vmap(jacobians))(x[0], u[0])
+    nested = jax.jit(jax.vmap(jax.vmap(jacobians)))(x, u)
     for g in range(2):
         for c in range(3):
             for i, name in enumerate(("A", "B", "f")):
