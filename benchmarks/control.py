@@ -84,6 +84,7 @@ QUICK_DEFAULTS = {"episodes": 1, "batch": 256, "repeats": 2, "min_time": 0.05}
 
 
 SOLVERS_MARKDOWN = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "mpc_solvers.md"
+RTI_MARKDOWN = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "sqp_rti.md"
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -97,13 +98,15 @@ def parse_args(argv=None) -> argparse.Namespace:
         nargs="+",
         default=["nonlinear", "linear"],
         choices=["nonlinear", "linear", "solvers", "rti"],
-        help="rti: the solvers part's SQP-RTI against IPOPT alone, on --solver-systems (writes sqp_rti.json)",
+        help="rti: SQP-RTI against IPOPT on --solver-systems (writes sqp_rti.json and --rti-markdown); solvers: the "
+        "structured QP solvers against qpOASES, OSQP and qpax, and GP-MPC on SQP-RTI (writes --solvers-markdown)",
     )
     parser.add_argument("--solver-systems", nargs="+", default=list(CASES), choices=list(CASES), help="solvers part")
     parser.add_argument("--batches", nargs="+", type=int, default=[1, 1024, 4096], help="solvers part: copies")
     parser.add_argument("--parity-states", type=int, default=1000, help="solvers part: states compared to qpOASES")
-    parser.add_argument("--rti-episodes", type=int, default=2, help="solvers part: episodes of SQP-RTI and IPOPT")
+    parser.add_argument("--rti-episodes", type=int, default=2, help="rti part: episodes of SQP-RTI and IPOPT")
     parser.add_argument("--solvers-markdown", type=Path, default=SOLVERS_MARKDOWN, help="solvers part: generated page")
+    parser.add_argument("--rti-markdown", type=Path, default=RTI_MARKDOWN, help="rti part: generated page")
     parser.add_argument(
         "--settings", nargs="+", default=list(SETTINGS), choices=list(SETTINGS), help="nonlinear MPC option sets"
     )
@@ -587,7 +590,32 @@ def measure_rti(name: str, args) -> list[dict]:
 LINEAR = LinearOptions()  # the linear MPC's defaults, which the page's "admm" columns run
 
 
-def write_solvers_markdown(path, qp_rows: list[dict], rti_rows: list[dict], meta: dict, gp_row: dict) -> None:
+def write_rti_markdown(path, rti_rows: list[dict], meta: dict) -> None:
+    """The SQP-RTI page: per system and setting, the closed-loop RMSE and the time per copy and step against IPOPT."""
+    columns = ["system", "task", "SQP-RTI setting", "episodes", "RMSE IPOPT", "RMSE SQP-RTI", "RMSE ratio"]
+    columns += ["IPOPT s/step", "SQP-RTI s/(copy step) x1024", "time ratio"]
+    rows = [
+        [r["system"], r["task"], r["setting"], r["episodes"], f"{r['rmse_ipopt']:.4f}", f"{r['rmse_sqp_rti']:.4f}"]
+        + [f"{r['rmse_ratio']:.4f}", f"{r['ipopt_s_per_step']:.2e}", f"{r['sqp_rti_s_per_copy_step_1024']:.2e}"]
+        + [f"1/{1 / r['time_ratio']:,.0f}"]
+        for r in rti_rows
+    ]
+    notes = f"""
+Nonlinear MPC, horizon {meta["config"]["horizon"]}, on the same seeded 5 s episodes ({meta["config"]["rti_episodes"]}
+per row): IPOPT (`controllers.nonlinear_mpc.solver: ipopt`, CasADi, float64, one copy on the host; its median solve
+time per step over an episode's first 50 steps) against SQP-RTI (`solver: sqp_rti`, JAX, float32; one jitted,
+vmapped control step of 1,024 copies that already have a plan, divided by 1,024). RMSE ratio: SQP-RTI's closed-loop
+RMSE over IPOPT's; time ratio: SQP-RTI's time per copy and step over IPOPT's per step. Settings: SQP-RTI's defaults
+(the structured ADMM QP solver with its active-set polish); without the polish; the interior point (`qp_solver: ipm`,
+a cold start at every step) with its defaults; and the interior point's throughput settings: at most 3 or 4
+iterations without the polish (`ipm_max_iter`, `ipm_polish_rounds: 0`), with and without iterative refinement
+(`ipm_refinement_steps`). The machine is shared: compare the rows of one run only. Load average at the start and
+end: {meta["load_average_start"]} / {meta["load_average_end"]}.
+"""
+    write_markdown_table(path, "SQP-RTI against IPOPT", meta, columns, rows, notes)
+
+
+def write_solvers_markdown(path, qp_rows: list[dict], meta: dict, gp_row: dict) -> None:
     batches = meta["config"]["batches"]
     columns = ["system", "constraints", "u0 max error vs qpOASES (N)", "feasible / states", "u0 at a bound"]
     columns += [f"admm QPs/s x{b}" for b in batches]
@@ -622,22 +650,6 @@ def write_solvers_markdown(path, qp_rows: list[dict], rti_rows: list[dict], meta
             for setting, error in r["throughput_error_N"].items()
         ],
     )
-    rti_lines = [
-        "",
-        "SQP-RTI (JAX, float32) against IPOPT (CasADi, host), horizon "
-        f"{meta['config']['horizon']}, the same seeded 5 s episodes:",
-        "",
-        "| system | task | SQP-RTI setting | episodes | RMSE IPOPT | RMSE SQP-RTI | ratio | IPOPT s/step | "
-        "SQP-RTI s/(copy step) x1024 | time ratio |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rti_rows:
-        rti_lines.append(
-            f"| {r['system']} | {r['task']} | {r['setting']} | {r['episodes']} | {r['rmse_ipopt']:.4f} | "
-            f"{r['rmse_sqp_rti']:.4f} | "
-            f"{r['rmse_ratio']:.4f} | {r['ipopt_s_per_step']:.2e} | {r['sqp_rti_s_per_copy_step_1024']:.2e} | "
-            f"1/{1 / r['time_ratio']:,.0f} |"
-        )
     settings = "; ".join(
         f'"{name}": ' + ", ".join(f"`{key}: {value}`" for key, value in options.items())
         for name, options in THROUGHPUT.items()
@@ -655,13 +667,14 @@ at a time on the host. env: one vmapped `env.step`. A copy whose iterate still v
 `feasibility_tol` (1e-3) after its iterations falls back to the clipped LQR input, which is where a throughput
 setting's largest errors come from. Throughput settings: {settings}. Load average at the start and end:
 {meta["load_average"]} / {meta["load_average_end"]}.
-""" + "\n".join(fast_lines + rti_lines)
+""" + "\n".join(fast_lines)
     notes += (
         f"\n\nGP-MPC on SQP-RTI (`{gp_row['config']}`, 150% prior, the GP of one learning round on "
         f"{gp_row['transitions']} transitions) against the nonlinear SQP-RTI on the true model, the config's "
         f"sections, per copy and step at 1,024 copies (their timed runs alternating): "
         f"{gp_row['gp_mpc_s_per_copy_step_1024']:.2e} s against {gp_row['nmpc_s_per_copy_step_1024']:.2e} s, "
-        f"{gp_row['ratio']:.1f}x."
+        f"{gp_row['ratio']:.1f}x.\n\nSQP-RTI against IPOPT: `python benchmarks/control.py --parts rti`, "
+        "docs/benchmarks/sqp_rti.md."
     )
     write_markdown_table(path, "Structured MPC solvers", meta, columns, rows, notes)
 
@@ -824,7 +837,7 @@ def main(argv=None) -> int:
         rows.append(row)
 
     if "rti" in args.parts:
-        meta["config"].update(rti_episodes=args.rti_episodes)
+        meta["config"].update(rti_episodes=args.rti_episodes, rti_systems=args.solver_systems)
         rti_rows = [r for name in args.solver_systems if name in RTI_TASKS for r in measure_rti(name, args)]
         for r in rti_rows:
             console.print(
@@ -833,28 +846,27 @@ def main(argv=None) -> int:
                 f"{r['ipopt_s_per_step']:.2e} s)",
                 highlight=False,
             )
+        meta["load_average_end"] = load_average()
         write_json(args.json.with_name("sqp_rti.json"), {**meta, "rti": rti_rows})
+        write_rti_markdown(args.rti_markdown, rti_rows, meta)
+        console.print(f"SQP-RTI page written to {args.rti_markdown}", highlight=False)
         if set(args.parts) == {"rti"}:
             return 0
 
     if "solvers" in args.parts:
-        meta["config"].update(batches=args.batches, parity_states=args.parity_states, rti_episodes=args.rti_episodes)
+        meta["config"].update(batches=args.batches, parity_states=args.parity_states)
         meta["load_average"] = load_average()
-        qp_rows, rti_rows = [], []
+        qp_rows = []
         for name in args.solver_systems:
             for with_state in (False, True):
                 r = measure_qp_solvers(name, with_state, args)
                 qp_rows.append(r)
                 console.print(f"{name} ({r['constraints']}): {r}", highlight=False)
-            if name in RTI_TASKS:
-                for r in measure_rti(name, args):
-                    rti_rows.append(r)
-                    console.print(f"{name} SQP-RTI: {r}", highlight=False)
         gp_row = measure_gp_rti(args)
         console.print(f"GP-MPC SQP-RTI: {gp_row}", highlight=False)
         meta["load_average_end"] = load_average()
-        write_json(args.json.with_name("mpc_solvers.json"), {**meta, "qp": qp_rows, "rti": rti_rows, "gp": gp_row})
-        write_solvers_markdown(args.solvers_markdown, qp_rows, rti_rows, meta, gp_row)
+        write_json(args.json.with_name("mpc_solvers.json"), {**meta, "qp": qp_rows, "gp": gp_row})
+        write_solvers_markdown(args.solvers_markdown, qp_rows, meta, gp_row)
         console.print(f"solvers page written to {args.solvers_markdown}", highlight=False)
         if set(args.parts) == {"solvers"}:
             return 0
