@@ -501,3 +501,17 @@ def test_a_held_solve_ignores_the_right_hand_side_of_free_rows_even_infinite_one
     rhs = jnp.array([1.0, jnp.inf, 2.0])
     for solve in (S._solve_held, jax.jit(S._solve_held)):  # eagerly (op by op) and compiled
         np.testing.assert_allclose(np.asarray(solve(S_k, held, rhs)), [0.5, 0.0, 0.5], rtol=1e-6)
+
+
+def test_rows_first_orders_by_priority_then_index_like_a_stable_sort():
+    # Worked by hand: priorities (1, 0, 2, 0, 1) -> the 0s (rows 1, 3), the 1s (0, 4), the 2 (2); the first 4.
+    priority = jnp.array([1, 0, 2, 0, 1])
+    np.testing.assert_array_equal(np.asarray(S._rows_first(priority, 4, levels=3)), [1, 3, 0, 4])
+    # Against a stable sort on random priorities of 83 rows (the cart-pole MPSC's kept rows), batched as the polish
+    # runs it.
+    rng = np.random.default_rng(0)
+    for levels in (2, 3):
+        priorities = rng.integers(0, levels, (64, 83))
+        picked = jax.jit(jax.vmap(lambda p, levels=levels: S._rows_first(p, 25, levels)))(jnp.asarray(priorities))
+        expected = np.argsort(priorities, axis=1, kind="stable")[:, :25]
+        np.testing.assert_array_equal(np.asarray(picked), expected)

@@ -663,10 +663,24 @@ class _PolishOps(NamedTuple):
     correct: Any
 
 
-def _rows_first(priority, k: int):
-    """The indices of the rows ordered by ``priority`` (0 first, then 1, ...; ties by index), the first ``k``."""
+def _rows_first(priority, k: int, levels: int = 2):
+    """The indices of the rows ordered by ``priority`` ((p,) integers in ``[0, levels)``: 0 first, then 1, ...; ties
+    by index), the first ``k``.
+
+    Ranks by counting, not by a sort: under ``vmap`` on a CPU an ``argsort`` sorts each copy's rows on its own (38 ms
+    for 4,096 copies of 83 rows, about half of a polish round), while the counts of the rows before each one are a
+    product with a constant triangular matrix over the whole batch, and the first ``k`` are picked by a product
+    with a one-hot matrix (3 ms together). Float32 counts are exact integers for any row count here.
+    """
     p = priority.shape[0]
-    return jnp.argsort(priority * p + jnp.arange(p))[:k]
+    before = jnp.asarray(np.tril(np.ones((p, p)), -1), jnp.float32)  # before[i, j] = 1 for the rows j < i
+    position, ahead = jnp.zeros(p, jnp.float32), jnp.zeros((), jnp.float32)
+    for level in range(levels):
+        at = (priority == level).astype(jnp.float32)
+        position = position + at * (ahead + before @ at)
+        ahead = ahead + jnp.sum(at)
+    chosen = (position[None, :] == jnp.arange(k, dtype=jnp.float32)[:, None]).astype(jnp.float32)  # (k, p)
+    return (chosen @ jnp.arange(p, dtype=jnp.float32)).astype(jnp.int32)
 
 
 def _solve_held(S, held, rhs):
@@ -818,7 +832,7 @@ def _dual_active_set(ops: _PolishOps, hard, lo, hi, primal_free, s_free, start_s
         side, lam, j, sigma, _, _, steps, (_, s) = carry
         held = side != 0
         # The set first, then the row being added, then padding: the first k take part (all when they fit).
-        index = rows if k == p else _rows_first(jnp.where(held, 0, jnp.where(rows == j, 1, 2)), k)
+        index = rows if k == p else _rows_first(jnp.where(held, 0, jnp.where(rows == j, 1, 2)), k, levels=3)
         S = ops.schur(index)
         in_set = held[index].astype(dtype)
         e_j = (index == j).astype(dtype)
