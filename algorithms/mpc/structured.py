@@ -667,20 +667,22 @@ def _rows_first(priority, k: int, levels: int = 2):
     """The indices of the rows ordered by ``priority`` ((p,) integers in ``[0, levels)``: 0 first, then 1, ...; ties
     by index), the first ``k``.
 
-    Ranks by counting, not by a sort: under ``vmap`` on a CPU an ``argsort`` sorts each copy's rows on its own (38 ms
-    for 4,096 copies of 83 rows, about half of a polish round), while the counts of the rows before each one are a
+    Ranks by counting, not by a sort: under ``vmap`` on a CPU an ``argsort`` sorts each copy's rows on its own (38-49
+    ms for 4,096 copies of 83 rows, about half of a polish round), while the counts of the rows before each one are a
     product with a constant triangular matrix over the whole batch, and the first ``k`` are picked by a product
-    with a one-hot matrix (3 ms together). Float32 counts are exact integers for any row count here.
+    with a one-hot matrix (5-6 ms together). The products run at full float32 precision (an accelerator's default may
+    round their inputs to bfloat16, which holds integers exactly only up to 256), so counts and indices are exact.
     """
     p = priority.shape[0]
+    exact = functools.partial(jnp.matmul, precision=lax.Precision.HIGHEST)
     before = jnp.asarray(np.tril(np.ones((p, p)), -1), jnp.float32)  # before[i, j] = 1 for the rows j < i
     position, ahead = jnp.zeros(p, jnp.float32), jnp.zeros((), jnp.float32)
     for level in range(levels):
         at = (priority == level).astype(jnp.float32)
-        position = position + at * (ahead + before @ at)
+        position = position + at * (ahead + exact(before, at))
         ahead = ahead + jnp.sum(at)
     chosen = (position[None, :] == jnp.arange(k, dtype=jnp.float32)[:, None]).astype(jnp.float32)  # (k, p)
-    return (chosen @ jnp.arange(p, dtype=jnp.float32)).astype(jnp.int32)
+    return exact(chosen, jnp.arange(p, dtype=jnp.float32)).astype(jnp.int32)
 
 
 def _solve_held(S, held, rhs):
