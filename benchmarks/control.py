@@ -33,6 +33,10 @@ Two measurements per system (cart-pole and 2D quadrotor, each in its paper confi
 Configs: ``configs/paper_cartpole_lqr_mpc.yaml`` (stabilization, 15 Hz, 90 steps per episode) and
 ``configs/paper_quadrotor_2d.yaml`` (figure-8 tracking, 50 Hz, 300 steps). Results go to
 ``benchmarks/results/control.json``. Run ``python benchmarks/control.py --help``; see benchmarks/README.md.
+
+Two more parts, each with its own page: ``--parts solvers`` (the structured QP solvers against qpax, qpOASES and OSQP
+on every system, GP-MPC on SQP-RTI; ``docs/benchmarks/mpc_solvers.md``) and ``--parts rti`` (SQP-RTI against IPOPT;
+``docs/benchmarks/sqp_rti.md``).
 """
 
 from __future__ import annotations
@@ -101,7 +105,9 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="rti: SQP-RTI against IPOPT on --solver-systems (writes sqp_rti.json and --rti-markdown); solvers: the "
         "structured QP solvers against qpOASES, OSQP and qpax, and GP-MPC on SQP-RTI (writes --solvers-markdown)",
     )
-    parser.add_argument("--solver-systems", nargs="+", default=list(CASES), choices=list(CASES), help="solvers part")
+    parser.add_argument(
+        "--solver-systems", nargs="+", default=list(CASES), choices=list(CASES), help="solvers and rti parts"
+    )
     parser.add_argument("--batches", nargs="+", type=int, default=[1, 1024, 4096], help="solvers part: copies")
     parser.add_argument("--parity-states", type=int, default=1000, help="solvers part: states compared to qpOASES")
     parser.add_argument("--rti-episodes", type=int, default=2, help="rti part: episodes of SQP-RTI and IPOPT")
