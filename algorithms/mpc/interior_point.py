@@ -33,7 +33,8 @@ are held at their bounds by an augmented Lagrangian (weight ``POLISH_RHO`` on th
 ``POLISH_STEPS`` exact minimisations, each followed by a multiplier update), and the plan is accepted if no free row
 is violated, every held row is at its bound and every held multiplier has its sign (within ``POLISH_TOL``). A round
 that is not accepted holds the violated rows too and frees the wrong-signed ones for the next, at most
-``IPMSettings.polish_rounds`` rounds from each start (a fixed count: under ``vmap`` every copy runs them).
+``IPMSettings.polish_rounds`` rounds from each start (one ``lax.while_loop``: under ``vmap`` it runs until every copy
+has an accepted plan or has run all its rounds).
 
 **Loops and tolerances.** At most ``IPMSettings.max_iterations`` iterations in a ``lax.while_loop``; under ``vmap``
 it runs until its slowest copy stops, and a copy that stopped keeps its iterate. A copy stops when every
@@ -491,36 +492,48 @@ def solve(layout: Layout, qp: HorizonQP, x_init, settings: IPMSettings = IPMSett
         # and multiplier updates on one factorisation. A round that leaves a free row violated or a held multiplier
         # of the wrong sign is not accepted; the next round holds the violated rows too and frees the wrong-signed
         # ones.
-        ok = jnp.asarray(False)
-        px, pu = it.x, it.u
-        for origin in (it, snap):
-            active = has & (origin.lam > origin.s)
-            y_start = jnp.sum(e * jnp.where(active, origin.lam, 0.0), axis=1)
-            for _ in range(settings.polish_rounds):
-                act = active.astype(dtype)
-                on = jnp.sum(act, axis=1)  # (N, ms)
-                target = jnp.sum(act * e * bound, axis=1)
-                factor, _ = _factorize(qp, rows, POLISH_RHO * on, scale)
-                y = on * y_start
-                qx, qu = origin.x, origin.u
-                for _ in range(POLISH_STEPS):
-                    v = _values(rows, qx, qu)
-                    pull = on * (y + POLISH_RHO * (v - target))
-                    tx, tu = _transpose(rows, pull, nx)
-                    gx = (_mv(qp.Q, qx) + qp.q) / scale + tx
-                    dx, du = _step(qp, factor, gx, (_mv(qp.R, qu) + qp.r) / scale + tu)
-                    qx, qu = qx + dx, qu + du
-                    v = _values(rows, qx, qu)
-                    y = y + POLISH_RHO * on * (v - target)
+        # One lax loop over the rounds of both starts (rounds of the last iterate, then of the snapped one), not
+        # unrolled: a traced program a sixth the size, and it stops once every copy of the batch has a plan.
+        rounds = settings.polish_rounds
+
+        def polish_round(carry):
+            j, active, px, pu, ok = carry
+            first = j < rounds
+            origin = jax.tree.map(lambda last, near: jnp.where(first, last, near), it, snap)
+            start_active = has & (origin.lam > origin.s)
+            active = jnp.where(j % rounds == 0, start_active, active)
+            y_start = jnp.sum(e * jnp.where(start_active, origin.lam, 0.0), axis=1)
+            act = active.astype(dtype)
+            on = jnp.sum(act, axis=1)  # (N, ms)
+            target = jnp.sum(act * e * bound, axis=1)
+            factor, _ = _factorize(qp, rows, POLISH_RHO * on, scale)
+
+            def minimise(_, qxy):
+                qx, qu, y = qxy
                 v = _values(rows, qx, qu)
-                slack_p = bound - e * v[:, None, :]  # >= 0 where feasible
-                violated = has & ~active & (slack_p < -POLISH_TOL)
-                wrong = active & (e * y[:, None, :] < -POLISH_TOL)
-                held = jnp.max(jnp.abs(on * (v - target))) <= POLISH_TOL
-                accept = ~ok & ~jnp.any(violated) & ~jnp.any(wrong) & held & jnp.all(jnp.isfinite(qu))
-                px, pu = jnp.where(accept, qx, px), jnp.where(accept, qu, pu)
-                ok = ok | accept
-                active = (active & ~wrong) | violated
+                pull = on * (y + POLISH_RHO * (v - target))
+                tx, tu = _transpose(rows, pull, nx)
+                gx = (_mv(qp.Q, qx) + qp.q) / scale + tx
+                dx, du = _step(qp, factor, gx, (_mv(qp.R, qu) + qp.r) / scale + tu)
+                qx, qu = qx + dx, qu + du
+                v = _values(rows, qx, qu)
+                return qx, qu, y + POLISH_RHO * on * (v - target)
+
+            qx, qu, y = lax.fori_loop(0, POLISH_STEPS, minimise, (origin.x, origin.u, on * y_start))
+            v = _values(rows, qx, qu)
+            slack_p = bound - e * v[:, None, :]  # >= 0 where feasible
+            violated = has & ~active & (slack_p < -POLISH_TOL)
+            wrong = active & (e * y[:, None, :] < -POLISH_TOL)
+            held = jnp.max(jnp.abs(on * (v - target))) <= POLISH_TOL
+            accept = ~ok & ~jnp.any(violated) & ~jnp.any(wrong) & held & jnp.all(jnp.isfinite(qu))
+            px, pu = jnp.where(accept, qx, px), jnp.where(accept, qu, pu)
+            return j + 1, (active & ~wrong) | violated, px, pu, ok | accept
+
+        _, _, px, pu, ok = lax.while_loop(
+            lambda carry: (carry[0] < 2 * rounds) & ~carry[4],
+            polish_round,
+            (jnp.int32(0), jnp.zeros_like(has), it.x, it.u, jnp.asarray(False)),
+        )
         it = it._replace(x=px, u=pu)
         status = jnp.where(ok, CONVERGED, status)
         polished = ok
