@@ -255,9 +255,10 @@ def test_linear_mpc_matches_qpoases_to_a_millinewton_with_active_input_and_state
         assert np.all(status[feasible] != structured.INFEASIBLE)
         np.testing.assert_allclose(u_jax[feasible], u_casadi[feasible], atol=1e-3)
     else:
-        # The interior point in float32 misses a few states by a few millinewtons where its iterate lost the active
-        # set before the polish could hold it (docs/controllers.md: 3 of the 6,851 states qpOASES solves on the
-        # benchmark page, at most 6.6e-3 N): at most one of these 100 per system beyond 1e-3 N, none beyond 1e-2 N.
+        # The interior point in float32 can miss a state by a few millinewtons where its iterate lost the active set
+        # before the polish could hold it (docs/controllers.md: of the benchmark's 1,000 states per system, the one
+        # on the 2D quadrotor whose feasible set is a sliver, 4.3e-3 N): at most one of these 100 per system beyond
+        # 1e-3 N, none beyond 1e-2 N.
         error = np.abs(u_jax - u_casadi).max(axis=1)[feasible]
         assert np.sum(error > 1e-3) <= 1 and error.max() <= 1e-2
         assert np.median(error) <= 1e-5
@@ -367,6 +368,36 @@ def test_without_active_constraints_the_first_input_is_the_lqr_input(cartpole):
                 u, status = act(mpc.reset(None, reference64), jnp.asarray(x), 0, reference64)
                 assert int(status.status) == structured.CONVERGED
                 np.testing.assert_allclose(u, -K @ x, rtol=1e-6, atol=1e-9)
+
+
+def test_the_ipm_polish_holds_a_loosely_held_active_set_harder(monkeypatch):
+    # State 775 of the benchmark's 1,000 cart-pole states (input bounds, cart box): in float32 the interior point's
+    # step broke off after 14 iterations, and its polish found the right 5 rows but held them only to 4e-5 (scaled;
+    # its tolerance 1e-5) however many augmented-Lagrangian steps it took, so no round was accepted and the plan
+    # was 6.6e-3 N from qpOASES's. A round that held the right rows loosely is now repeated at 100x the weight
+    # (to 1e6), which holds them: 1.4e-5 N. Without the growth the miss is back.
+    from scg_algorithms.mpc import interior_point
+
+    env, params = cases.make_case_env("cartpole")
+    reference = Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
+    case = cases.CASES["cartpole"]
+    steps, states = cases.random_states(env, reference, case.offset, case.spread, 1000)
+    step, x = int(steps[775]), states[775]
+    u_qpoases, info = make_linear_mpc_casadi(env, params, {"horizon": 20}).act({}, x, step, reference)
+    assert info["success"]
+    reference32 = Reference(*(jnp.asarray(a, jnp.float32) for a in reference))
+
+    def first_input():
+        mpc = make_linear_mpc(env, params, {"horizon": 20, "solver": "ipm"})
+        u, ctrl_state = jax.jit(mpc.act)(mpc.reset(None, reference32), jnp.asarray(x, jnp.float32), step, reference32)
+        return np.asarray(u), int(ctrl_state.status)
+
+    u, status = first_input()
+    assert status == structured.CONVERGED  # a polished plan
+    np.testing.assert_allclose(u, u_qpoases, atol=1e-4)
+    monkeypatch.setattr(interior_point, "POLISH_RHO_GROWTH", 1.0)
+    u, status = first_input()
+    assert status == structured.NUMERICAL and np.abs(u - u_qpoases).max() > 1e-3
 
 
 @pytest.mark.parametrize("solver", ["admm", "ipm"])

@@ -32,7 +32,10 @@ first whose complementarity products were all below ``SNAP_TOL``: the rows whose
 are held at their bounds by an augmented Lagrangian (weight ``POLISH_RHO`` on those rows only: one factorisation,
 ``POLISH_STEPS`` exact minimisations, each followed by a multiplier update), and the plan is accepted if no free row
 is violated, every held row is at its bound and every held multiplier has its sign (within ``POLISH_TOL``). A round
-that is not accepted holds the violated rows too and frees the wrong-signed ones for the next, at most
+that is not accepted holds the violated rows too and frees the wrong-signed ones for the next; one that held the
+right rows, only not within ``POLISH_TOL`` of their bounds (float32 on an ill-conditioned stage: the cart-pole's
+state 775 of the benchmark's 1,000 stalled at 4e-5 whatever the number of steps), is repeated at
+``POLISH_RHO_GROWTH`` times the weight, up to ``POLISH_RHO_MAX``. At most
 ``IPMSettings.polish_rounds`` rounds from each start (one ``lax.while_loop``: under ``vmap`` it runs until every copy
 has an accepted plan or has run all its rounds).
 
@@ -75,6 +78,9 @@ LAMBDA_MAX = 1e8
 SNAP_TOL = 1e-3
 POLISH_STEPS = 3  # augmented-Lagrangian minimisations per polish round
 POLISH_RHO = 1e4  # the polish's weight on a held row (scaled units; 1e3-1e5 give the same plans)
+# The weight of a round repeated because it held the right rows loosely, and its cap: at 1e6 the cart-pole's state
+# 775 holds (1.4e-5 N from qpOASES); 1e6 from the start loses two 2D-quadrotor states that 1e4 keeps.
+POLISH_RHO_GROWTH, POLISH_RHO_MAX = 100.0, 1e6
 POLISH_TOL = 1e-5  # a polished plan's largest violation and wrong-signed multiplier (scaled units)
 
 
@@ -497,27 +503,29 @@ def solve(layout: Layout, qp: HorizonQP, x_init, settings: IPMSettings = IPMSett
         rounds = settings.polish_rounds
 
         def polish_round(carry):
-            j, active, px, pu, ok = carry
+            j, active, rho, px, pu, ok = carry
             first = j < rounds
             origin = jax.tree.map(lambda last, near: jnp.where(first, last, near), it, snap)
             start_active = has & (origin.lam > origin.s)
-            active = jnp.where(j % rounds == 0, start_active, active)
+            fresh = j % rounds == 0
+            active = jnp.where(fresh, start_active, active)
+            rho = jnp.where(fresh, POLISH_RHO, rho)
             y_start = jnp.sum(e * jnp.where(start_active, origin.lam, 0.0), axis=1)
             act = active.astype(dtype)
             on = jnp.sum(act, axis=1)  # (N, ms)
             target = jnp.sum(act * e * bound, axis=1)
-            factor, _ = _factorize(qp, rows, POLISH_RHO * on, scale)
+            factor, _ = _factorize(qp, rows, rho * on, scale)
 
             def minimise(_, qxy):
                 qx, qu, y = qxy
                 v = _values(rows, qx, qu)
-                pull = on * (y + POLISH_RHO * (v - target))
+                pull = on * (y + rho * (v - target))
                 tx, tu = _transpose(rows, pull, nx)
                 gx = (_mv(qp.Q, qx) + qp.q) / scale + tx
                 dx, du = _step(qp, factor, gx, (_mv(qp.R, qu) + qp.r) / scale + tu)
                 qx, qu = qx + dx, qu + du
                 v = _values(rows, qx, qu)
-                return qx, qu, y + POLISH_RHO * on * (v - target)
+                return qx, qu, y + rho * on * (v - target)
 
             qx, qu, y = lax.fori_loop(0, POLISH_STEPS, minimise, (origin.x, origin.u, on * y_start))
             v = _values(rows, qx, qu)
@@ -527,12 +535,15 @@ def solve(layout: Layout, qp: HorizonQP, x_init, settings: IPMSettings = IPMSett
             held = jnp.max(jnp.abs(on * (v - target))) <= POLISH_TOL
             accept = ~ok & ~jnp.any(violated) & ~jnp.any(wrong) & held & jnp.all(jnp.isfinite(qu))
             px, pu = jnp.where(accept, qx, px), jnp.where(accept, qu, pu)
-            return j + 1, (active & ~wrong) | violated, px, pu, ok | accept
+            # A round that held the right rows, only not closely enough, is repeated holding them harder.
+            loose = ~jnp.any(violated) & ~jnp.any(wrong) & ~held
+            rho = jnp.where(loose, jnp.minimum(rho * POLISH_RHO_GROWTH, POLISH_RHO_MAX), rho)
+            return j + 1, (active & ~wrong) | violated, rho, px, pu, ok | accept
 
-        _, _, px, pu, ok = lax.while_loop(
-            lambda carry: (carry[0] < 2 * rounds) & ~carry[4],
+        _, _, _, px, pu, ok = lax.while_loop(
+            lambda carry: (carry[0] < 2 * rounds) & ~carry[5],
             polish_round,
-            (jnp.int32(0), jnp.zeros_like(has), it.x, it.u, jnp.asarray(False)),
+            (jnp.int32(0), jnp.zeros_like(has), jnp.asarray(POLISH_RHO, dtype), it.x, it.u, jnp.asarray(False)),
         )
         it = it._replace(x=px, u=pu)
         status = jnp.where(ok, CONVERGED, status)
