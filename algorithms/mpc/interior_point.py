@@ -499,7 +499,8 @@ def solve(layout: Layout, qp: HorizonQP, x_init, settings: IPMSettings = IPMSett
         # of the wrong sign is not accepted; the next round holds the violated rows too and frees the wrong-signed
         # ones.
         # One lax loop over the rounds of both starts (rounds of the last iterate, then of the snapped one), not
-        # unrolled: a traced program a sixth the size, and it stops once every copy of the batch has a plan.
+        # unrolled: the polish traces to about an eighth of the equations (an SQP-RTI cart-pole step's program: 4,291
+        # instead of 7,895), and the loop stops once every copy of the batch has a plan.
         rounds = settings.polish_rounds
 
         def polish_round(carry):
