@@ -36,6 +36,7 @@ from scg_algorithms.progress import Task, as_progress, running
 from scg_algorithms.safety_filters.base import check_system, filter_record, intervention_metrics, is_filtered
 from scg_jax import metrics as metrics_lib
 from scg_jax.caching import CompileCache
+from scg_jax.tracing import batched_like
 
 # The keys of the JSON the CLI writes, in the paper's order: summary name -> metrics.summarize name.
 SUMMARY_KEYS = {
@@ -135,7 +136,8 @@ def _closed_loop_fn(env, controller):
                 record.update(filter_record(ctrl_state))
             return (out.obs, out.state, ctrl_state), record
 
-        (_, final_state, _), records = jax.lax.scan(body, (obs, state, ctrl_state), None, length=env.num_steps)
+        carry = batched_like((obs, state, ctrl_state), env_key)  # vmap traces the body once (scg_jax.tracing)
+        (_, final_state, _), records = jax.lax.scan(body, carry, None, length=env.num_steps)
         return records, final_state.x, reference.x_ref
 
     return one_copy
@@ -154,7 +156,7 @@ def _replay_fn(env, controller):
             return ctrl_state, u
 
         steps = jnp.arange(obs_seq.shape[0], dtype=jnp.int32)
-        _, u = jax.lax.scan(body, ctrl_state, (obs_seq, steps))
+        _, u = jax.lax.scan(body, batched_like(ctrl_state, ctrl_key), (obs_seq, steps))
         return u
 
     return replay

@@ -60,6 +60,7 @@ from jax.scipy.linalg import cho_solve
 
 from scg_algorithms import controller_setup as setup
 from scg_algorithms.base import JaxController, option, parse_options, positive, state_from_obs
+from scg_jax.tracing import batched_like
 
 INPUT_CONSTRAINTS = ("box", "clip")
 
@@ -417,7 +418,7 @@ def ilqr_solve(
             "history": s["history"].at[iteration].set(cost),
         }
 
-    s = lax.while_loop(cond, body, init)
+    s = lax.while_loop(cond, body, batched_like(init, x))  # the mu, the counter: per copy under vmap
     history = jnp.where(jnp.arange(settings.max_iterations + 1) > s["iteration"], s["cost"], s["history"])
     bwd = s["bwd"]
     return ILQRSolution(

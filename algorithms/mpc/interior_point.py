@@ -66,6 +66,7 @@ import numpy as np
 from jax import lax
 
 from scg_algorithms.mpc.structured import CONVERGED, INFEASIBLE, MAX_ITERATIONS, NUMERICAL, HorizonQP, Layout
+from scg_jax.tracing import batched_like
 
 STEP_FRACTION = 0.995  # of the largest step that keeps every slack and multiplier positive
 # Multipliers (scaled) beyond this mean the rows admit no plan: on the 2D quadrotor's position box 212 of the 213
@@ -298,7 +299,7 @@ def _factorize(qp: HorizonQP, rows: _Rows, w, scale):
             P_prev = _mm(_T(A), _mm(P, A)) + _mm(_T(Hux), K)
         return 0.5 * (P_prev + _T(P_prev)), _Factor(Hinv, K, Hux)
 
-    _, factor = lax.scan(stage, jnp.zeros((nx, nx), Q.dtype), (qp.A, qp.B, Q, R, M), reverse=True)
+    _, factor = lax.scan(stage, batched_like(jnp.zeros((nx, nx), Q.dtype), w), (qp.A, qp.B, Q, R, M), reverse=True)
     return factor, (Q, R, M)
 
 
@@ -318,7 +319,8 @@ def _step(qp: HorizonQP, factor: _Factor, gx, gu):
         kff = -_mv(Hinv, h)
         return _mv(_T(A), p) + _mv(_T(Hux), kff), kff
 
-    _, kff = lax.scan(backward, jnp.zeros_like(gx[0]), (qp.A, qp.B, factor.Hinv, factor.Hux, gx, gu), reverse=True)
+    zero = batched_like(jnp.zeros_like(gx[0]), gx)  # zeros_like is the same for every copy under vmap
+    _, kff = lax.scan(backward, zero, (qp.A, qp.B, factor.Hinv, factor.Hux, gx, gu), reverse=True)
 
     def forward(dx, inputs):
         A, B, K, k = inputs
@@ -326,7 +328,7 @@ def _step(qp: HorizonQP, factor: _Factor, gx, gu):
         dx_next = _mv(A, dx) + _mv(B, du)
         return dx_next, (dx_next, du)
 
-    _, (dx, du) = lax.scan(forward, jnp.zeros_like(gx[0]), (qp.A, qp.B, factor.K, kff))
+    _, (dx, du) = lax.scan(forward, zero, (qp.A, qp.B, factor.K, kff))
     return dx, du
 
 
@@ -488,7 +490,7 @@ def solve(layout: Layout, qp: HorizonQP, x_init, settings: IPMSettings = IPMSett
 
     no = jnp.asarray(False)
     it, m, iterations, broke, converged, infeasible, snap, snapped = lax.while_loop(
-        running, iteration, (start, measure(start), jnp.int32(0), no, no, no, start, no)
+        running, iteration, batched_like((start, measure(start), jnp.int32(0), no, no, no, start, no), x_init)
     )
     status = jnp.where(infeasible, INFEASIBLE, MAX_ITERATIONS)
     status = jnp.where(converged, CONVERGED, jnp.where(broke, NUMERICAL, status)).astype(jnp.int32)
@@ -528,7 +530,9 @@ def solve(layout: Layout, qp: HorizonQP, x_init, settings: IPMSettings = IPMSett
                 v = _values(rows, qx, qu)
                 return qx, qu, y + rho * on * (v - target)
 
-            qx, qu, y = lax.fori_loop(0, POLISH_STEPS, minimise, (origin.x, origin.u, on * y_start))
+            qx, qu, y = lax.fori_loop(
+                0, POLISH_STEPS, minimise, batched_like((origin.x, origin.u, on * y_start), x_init)
+            )
             v = _values(rows, qx, qu)
             slack_p = bound - e * v[:, None, :]  # >= 0 where feasible
             violated = has & ~active & (slack_p < -POLISH_TOL)
@@ -544,7 +548,10 @@ def solve(layout: Layout, qp: HorizonQP, x_init, settings: IPMSettings = IPMSett
         _, _, _, px, pu, ok = lax.while_loop(
             lambda carry: (carry[0] < 2 * rounds) & ~carry[5],
             polish_round,
-            (jnp.int32(0), jnp.zeros_like(has), jnp.asarray(POLISH_RHO, dtype), it.x, it.u, jnp.asarray(False)),
+            batched_like(
+                (jnp.int32(0), jnp.zeros_like(has), jnp.asarray(POLISH_RHO, dtype), it.x, it.u, jnp.asarray(False)),
+                x_init,
+            ),
         )
         it = it._replace(x=px, u=pu)
         status = jnp.where(ok, CONVERGED, status)

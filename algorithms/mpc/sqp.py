@@ -57,6 +57,7 @@ from scg_algorithms.base import JaxController, state_from_obs
 from scg_algorithms.mpc import interior_point, structured
 from scg_jax import constraints as constraints_lib
 from scg_jax.backends import jax_backend
+from scg_jax.tracing import batched_like
 
 LINE_SEARCH_STEPS = 8  # a = 1, 1/2, ..., 2^-7
 JACOBIAN_CHUNK = 1024  # stages per chunk of a batch's model Jacobians (_jacobians)
@@ -529,7 +530,7 @@ def _act(model: _Model, ctrl_state: SQPState, obs, step, reference):
 
     init = (x_bar, u_bar, warm, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.ones((), bool))
     init = (*init, jnp.zeros((), jnp.int32), jnp.asarray(jnp.inf, dtype), jnp.ones((), bool))
-    x, u, warm, status, qp_it, first_ok, it, _, _ = lax.while_loop(cond, body, init)
+    x, u, warm, status, qp_it, first_ok, it, _, _ = lax.while_loop(cond, body, batched_like(init, x0))
     if rti:
         x, u, warm, status, qp_it, first_ok, it = jax.tree.map(
             lambda a, b: jnp.where(have_plan, a, b), rti_out, (x, u, warm, status, qp_it, first_ok, it)

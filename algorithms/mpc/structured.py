@@ -87,6 +87,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from scg_jax.tracing import batched_like
+
 CONVERGED = 0
 MAX_ITERATIONS = 1
 INFEASIBLE = 2
@@ -334,7 +336,7 @@ def _maps(layout: Layout, A, B, K):
     for k in range(N):
         select[k, :, k * nu : (k + 1) * nu] = np.eye(nu)
 
-    E0 = jnp.zeros((layout.nx, n), A.dtype)
+    E0 = batched_like(jnp.zeros((layout.nx, n), A.dtype), A)
     return lax.scan(_maps_step, E0, (A, B, K, jnp.asarray(select, A.dtype)))[1]
 
 
@@ -434,7 +436,7 @@ def _hessian(A, B, K, Q, R, Ex):
         V = small_matmul(Acl_k.T, PA) + small_matmul(K_k.T, small_matmul(R_k, K_k))
         return 0.5 * (V + V.T), (M, 0.5 * (D + D.T))
 
-    zero = jnp.zeros((nx, nx), Ex.dtype)
+    zero = batched_like(jnp.zeros((nx, nx), Ex.dtype), Acl)
     Q, R, K = (jnp.broadcast_to(a, (N, *a.shape[-2:])) for a in (Q, R, K))
     _, (M, D) = lax.scan(back, zero, (Acl, B, K, Q, R), reverse=True)
     lower = jnp.concatenate([jnp.zeros((nu, n), Ex.dtype), small_matmul(M[1:], Ex[:-1]).reshape(-1, n)])
@@ -640,7 +642,7 @@ def _admm(layout: Layout, ops: _Operators, data: _Scaled, s0, y0, t0, factor, se
     primal0, _ = ops.update(s0, y0, t0, factor)
     false, zero = jnp.zeros((), bool), jnp.zeros((), dtype)
     init = (primal0, s0, y0, t0, carried, false, false, zero, zero, zero, jnp.zeros((), jnp.int32), false)
-    out = lax.while_loop(cond, body, init)
+    out = lax.while_loop(cond, body, batched_like(init, data.off))  # s0 is zeros on a cold start
     primal, s, y, t, _, converged, infeasible, r_prim, r_dual, violation, iterations, _ = out
     status = jnp.where(converged, CONVERGED, jnp.where(infeasible, INFEASIBLE, MAX_ITERATIONS))
     finite = jnp.isfinite(r_prim) & jnp.isfinite(r_dual) & jnp.isfinite(t)
@@ -773,7 +775,7 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
     _, (_, _, (primal, s, y), ok) = lax.while_loop(
         lambda carry: (carry[0] < settings.polish_rounds) & ~carry[1][3],
         lambda carry: (carry[0] + 1, round_(carry[1])),
-        (jnp.zeros((), jnp.int32), init),
+        batched_like((jnp.zeros((), jnp.int32), init), result.s),
     )
     if settings.dual_active_set_steps and not exact_soft:
         # It starts from the ADMM's set, where the rounds started (their last set may be empty: see the method).
@@ -893,20 +895,22 @@ def _dual_active_set(ops: _PolishOps, hard, lo, hi, primal_free, s_free, start_s
         side, lam, _, unsettled = lax.while_loop(
             lambda c: ~skip & c[3] & (c[2] < RESTORE_ROUNDS),
             restore,
-            (side, jnp.zeros(p, dtype), zero, jnp.any(side != 0)),
+            batched_like((side, jnp.zeros(p, dtype), zero, jnp.any(side != 0)), s_free),
         )
         cold = unsettled | ~jnp.all(jnp.isfinite(lam))
         side, lam = jnp.where(cold, 0, side), jnp.where(cold, 0.0, lam)
         start = pick(side, lam, -1 + zero, jnp.ones((), dtype), jnp.zeros((), bool), zero, *solution(side, lam))
         side, lam, _, _, _, _, _, (primal, s) = lax.while_loop(
-            lambda c: ~skip & ~c[4] & ~c[5] & (c[6] < max_steps), step, start
+            lambda c: ~skip & ~c[4] & ~c[5] & (c[6] < max_steps), step, batched_like(start, s_free)
         )
         return primal, s, lam
 
     # One pass at most, not lax.cond: under vmap a cond computes both branches for every copy, this loop's body runs
     # only when some copy of the batch needs the method (the rest keep the minimiser without rows, unused).
     _, out = lax.while_loop(
-        lambda c: c[0], lambda c: (jnp.zeros((), bool), run()), (~skip, (primal_free, s_free, jnp.zeros(p, dtype)))
+        lambda c: c[0],
+        lambda c: (jnp.zeros((), bool), run()),
+        batched_like((~skip, (primal_free, s_free, jnp.zeros(p, dtype))), s_free),
     )
     return out
 
@@ -1024,7 +1028,7 @@ def solve(layout: Layout, qp: HorizonQP, x_init, warm: Warm | None = None, setti
         # one pass, not lax.cond: under vmap a cond computes both branches for every copy, the loop's body runs only
         # when some copy is stale (and keeps the others' factors).
         _, matrices, t_new = lax.while_loop(
-            lambda carry: carry[0], lambda carry: (False, factorize(t), t), (stale, matrices, t_old)
+            lambda carry: carry[0], lambda carry: (False, factorize(t), t), batched_like((stale, matrices, t_old), t)
         )
         return (matrices, t_new), t_new
 
