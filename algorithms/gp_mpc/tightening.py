@@ -64,6 +64,7 @@ def propagate_covariance_scan(A, B, K, model_var, sigma0):
     import jax.numpy as jnp
 
     from scg_algorithms.mpc.structured import small_matmul
+    from scg_jax.tracing import batched_like
 
     def stage(sigma, inputs):
         A_i, B_i, var_i = inputs
@@ -73,7 +74,7 @@ def propagate_covariance_scan(A, B, K, model_var, sigma0):
         return sigma, sigma
 
     sigma0 = jnp.asarray(sigma0, A.dtype)
-    _, rest = jax.lax.scan(stage, sigma0, (A, B, model_var))
+    _, rest = jax.lax.scan(stage, batched_like(sigma0, A), (A, B, model_var))
     return jnp.concatenate([sigma0[None], rest], axis=0)
 
 

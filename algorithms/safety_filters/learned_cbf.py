@@ -41,6 +41,7 @@ import numpy as np
 from scg_algorithms.base import option, parse_options
 from scg_algorithms.safety_filters import cbf as cbf_lib
 from scg_algorithms.safety_filters.base import filtered
+from scg_jax.tracing import batched_like
 from scg_jax.validation import FieldError
 
 PATH = "safety_filters.learned_cbf"
@@ -137,7 +138,8 @@ def _collector(env, flt, prior_step, uncertified):
             residual = (h_next - h_pred) / env.dt
             return (out.obs, out.state, ctrl_state), (x, u, ~out.terminated, residual)
 
-        _, records = jax.lax.scan(body, (obs, state, ctrl_state), None, length=env.num_steps)
+        carry = batched_like((obs, state, ctrl_state), obs)  # vmap batches the body once (scg_jax.tracing)
+        _, records = jax.lax.scan(body, carry, None, length=env.num_steps)
         return records
 
     return jax.jit(jax.vmap(one_copy, in_axes=(None, None, 0, None, None)))

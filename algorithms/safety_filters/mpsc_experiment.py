@@ -11,6 +11,7 @@ import numpy as np
 
 import scg_jax
 from scg_algorithms.lqr import discrete_lqr_gain
+from scg_jax.tracing import batched_like
 
 POSITION_BOUND = 0.5  # m, the cart's constraint |x| <= 0.5
 SETPOINT = 1.0  # m, where the uncertified LQR drives the cart
@@ -69,7 +70,8 @@ def closed_loop(env, params, controller, safety_filter, key, num_episodes: int):
             record = (out.info["constraint_violation"], feasible, jnp.abs(u - u_l).max(), out.state.x)
             return (out.obs, out.state, fstate), record
 
-        _, (violating, feasible, correction, xs) = jax.lax.scan(step, (obs, state, fstate), None, env.num_steps)
+        carry = batched_like((obs, state, fstate), obs)  # vmap batches the body once (scg_jax.tracing)
+        _, (violating, feasible, correction, xs) = jax.lax.scan(step, carry, None, env.num_steps)
         return violating, feasible, correction, jnp.concatenate([state.x[None], xs])
 
     run = jax.jit(jax.vmap(episode))
