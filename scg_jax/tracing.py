@@ -4,7 +4,8 @@
 carry entries differ between copies: an entry that starts the same for every copy (a constant, zeros, a counter) but
 that the body makes differ is found only by a second trace of the body with it batched, and a loop nested in that body
 is traced again each time. ``batched_like`` makes every entry of an initial carry differ between copies from the start,
-so each loop body is traced once: the closed loop of a batched SQP-RTI controller traces in 3.6 s instead of 6.3 s.
+so each loop body is traced once: the vmapped closed loop of an SQP-RTI cart-pole controller traces in about 3.7 s
+instead of about 7 s.
 """
 
 from __future__ import annotations
