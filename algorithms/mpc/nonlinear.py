@@ -99,7 +99,9 @@ class Options(setup.MPCOptions):
     max_iter: int = option(100, "IPOPT iteration limit per step")
     tol: float = option(1e-6, "IPOPT convergence tolerance")
     fallback_tol: float = option(
-        1e-4, "largest constraint violation of IPOPT's last iterate (sqp: of a QP's plan) accepted after a failed solve"
+        1e-4,
+        "largest constraint violation of IPOPT's last iterate accepted after a failed solve (sqp, sqp_rti: of a QP's "
+        "plan, or more where the plan kept instead violates more)",
     )
     solver: str = option(
         "ipopt",

@@ -37,10 +37,12 @@ tightens every env constraint row at every stage by a margin from its variance, 
 linearised (the CasADi GP-MPC's ``tightening``, in JAX). ``sqp_mpc_builder`` does the host-side set-up once, so the
 controller can be built inside ``jax.jit`` from a traced model (one compile per GP size).
 
-**Failure**: a QP that is infeasible, non-finite, or whose plan violates a hard row by more than
-``fallback_tol`` moves nothing; when the very first iteration fails, the input is the shifted previous plan's
-(or the equilibrium input without one), clipped to the box. ``SQPState.num_failures`` counts those steps.
-Nothing returned is NaN.
+**Failure**: a QP that is infeasible or non-finite moves nothing, and so does one whose plan violates a hard row by
+more than ``fallback_tol`` unless the plan it would leave in place violates the same rows by more (its inputs
+applied from the measured state through the QP's model; that plan only ages, shifted with its last input held, and
+on a 2D quadrotor tracking its circle under a ceiling it held full thrust and flew off). When the very first
+iteration fails, the input is the shifted previous plan's (or the equilibrium input without one), clipped to the
+box. ``SQPState.num_failures`` counts those steps. Nothing returned is NaN.
 """
 
 from __future__ import annotations
@@ -410,6 +412,21 @@ def _merit(model: _Model, x, u, x0, window, row_margins):
     return J + s.opts.merit_weight * (defects + violation)
 
 
+def _kept_violation(qp: structured.HorizonQP, x0, u):
+    """The largest violation of the QP's general rows (``row_high``; hard, the lower side open) by the inputs
+    ``u (H, nu)`` applied from ``x0`` through the QP's model: what keeping them would give, in the units of the QP
+    solution's ``violation``."""
+
+    def stage(x, inputs):
+        A, B, c, u_k = inputs
+        x_next = A @ x + B @ u_k + c
+        return x_next, x_next
+
+    _, x = lax.scan(stage, x0, (qp.A, qp.B, qp.c, u))
+    values = jnp.einsum("kmx,kx->km", qp.C, x) + jnp.einsum("kmu,ku->km", qp.D, u)
+    return jnp.maximum(jnp.max(values - qp.row_high, initial=0.0), 0.0)
+
+
 def _solve_qp(s: _Setup, qp, x0, warm) -> structured.Solution:
     """The QP by the ADMM (warm-started) or, with ``qp_solver: ipm``, by the interior point (cold; ``warm`` is
     passed through for the next step)."""
@@ -434,7 +451,13 @@ def _iteration(model: _Model, x0, window, x_bar, u_bar, warm, margins, lin=None,
     qp = qp._replace(q=-jnp.einsum("kxy,ky->kx", s.Qs, window[1:]))
     sol = _solve_qp(s, qp, x0, warm)
     ok = (sol.status == structured.CONVERGED) | (sol.status == structured.MAX_ITERATIONS)
-    ok = ok & (sol.violation <= s.opts.fallback_tol) & jnp.all(jnp.isfinite(sol.u)) & jnp.all(jnp.isfinite(sol.x))
+    # A plan that misses a hard row by more than fallback_tol is still taken where the plan it would leave in place
+    # misses the same rows by more: 8 episodes of the 2D quadrotor's circle under a ceiling at 1.3 m, where the ADMM
+    # stops at its cap, went from one flight to 30.6 m and RMSE 0.529 to every episode that starts below the ceiling
+    # within 1e-4 m of it and RMSE 0.235 (tests/test_sqp_mpc.py).
+    kept = _kept_violation(qp, x0, u_bar) if (s.m and not s.soft) else jnp.zeros((), dtype)
+    tolerated = jnp.maximum(s.opts.fallback_tol, kept)
+    ok = ok & (sol.violation <= tolerated) & jnp.all(jnp.isfinite(sol.u)) & jnp.all(jnp.isfinite(sol.x))
     if not full_step:
         base = _merit(model, x_bar, u_bar, x0, window, row_margins)
         fractions = 0.5 ** jnp.arange(LINE_SEARCH_STEPS, dtype=dtype)
