@@ -574,4 +574,10 @@ def _violation(rows: _Rows, x, u):
     return jnp.max(jnp.maximum(over, 0.0) * scales)
 
 
-__all__ = ["IPMSettings", "IPMSolution", "check_layout", "solve"]
+def inputs_violation(layout: Layout, qp: HorizonQP, x_init, u):
+    """The largest violation of a row of ``qp`` (row units, as ``IPMSolution.violation``) by the inputs ``u (N, nu)``
+    applied from ``x_init`` through the QP's model: what keeping a plan's inputs would give (SQP's fallback)."""
+    return _violation(_make_rows(layout, qp), _rollout(qp, x_init, u), u)
+
+
+__all__ = ["IPMSettings", "IPMSolution", "check_layout", "inputs_violation", "solve"]

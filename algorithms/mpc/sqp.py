@@ -412,21 +412,6 @@ def _merit(model: _Model, x, u, x0, window, row_margins):
     return J + s.opts.merit_weight * (defects + violation)
 
 
-def _kept_violation(qp: structured.HorizonQP, x0, u):
-    """The largest violation of the QP's general rows (``row_high``; hard, the lower side open) by the inputs
-    ``u (H, nu)`` applied from ``x0`` through the QP's model: what keeping them would give, in the units of the QP
-    solution's ``violation``."""
-
-    def stage(x, inputs):
-        A, B, c, u_k = inputs
-        x_next = A @ x + B @ u_k + c
-        return x_next, x_next
-
-    _, x = lax.scan(stage, x0, (qp.A, qp.B, qp.c, u))
-    values = jnp.einsum("kmx,kx->km", qp.C, x) + jnp.einsum("kmu,ku->km", qp.D, u)
-    return jnp.maximum(jnp.max(values - qp.row_high, initial=0.0), 0.0)
-
-
 def _solve_qp(s: _Setup, qp, x0, warm) -> structured.Solution:
     """The QP by the ADMM (warm-started) or, with ``qp_solver: ipm``, by the interior point (cold; ``warm`` is
     passed through for the next step)."""
@@ -455,7 +440,7 @@ def _iteration(model: _Model, x0, window, x_bar, u_bar, warm, margins, lin=None,
     # misses the same rows by more: 8 episodes of the 2D quadrotor's circle under a ceiling at 1.3 m, where the ADMM
     # stops at its cap, went from one flight to 30.6 m and RMSE 0.529 to every episode that starts below the ceiling
     # within 1e-4 m of it and RMSE 0.235 (tests/test_sqp_mpc.py).
-    kept = _kept_violation(qp, x0, u_bar) if (s.m and not s.soft) else jnp.zeros((), dtype)
+    kept = interior_point.inputs_violation(s.layout, qp, x0, u_bar) if (s.m and not s.soft) else jnp.zeros((), dtype)
     tolerated = jnp.maximum(s.opts.fallback_tol, kept)
     ok = ok & (sol.violation <= tolerated) & jnp.all(jnp.isfinite(sol.u)) & jnp.all(jnp.isfinite(sol.x))
     if not full_step:
