@@ -1,6 +1,8 @@
 """Nonlinear MPC in JAX (``scg_algorithms.mpc.sqp``): SQP's first input against IPOPT's, SQP-RTI's closed-loop RMSE
 against IPOPT's on the same seeded episodes, determinism, no retracing, and option errors."""
 
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -10,7 +12,10 @@ import scg_jax
 from scg_algorithms.base import Reference
 from scg_algorithms.evaluation import evaluate
 from scg_algorithms.mpc.nonlinear import make_nonlinear_mpc
+from scg_jax.config import load_config, make_from_config
 from tests.control_helpers import env_and_random_states
+
+ROOT = Path(__file__).resolve().parents[1]
 
 CASES = {
     # system, make() arguments, half-widths of the random states around a random reference point, count
@@ -106,6 +111,33 @@ def test_sqp_rti_under_a_ceiling_takes_the_plan_that_violates_less_than_the_one_
     assert np.max(z[:, below]) <= ceiling + 1e-3
     assert np.sum(np.max(z[:, below], axis=0) >= ceiling - 1e-3) >= 3  # the ceiling is reached and held
     assert result.summary["rmse"] <= 0.3
+
+
+def test_sqp_rti_judges_the_interior_points_plan_with_its_inputs_clipped():
+    # The paper cart-pole (configs/paper_cartpole_gp_mpc.yaml) controlled on its 150% prior, the interior point
+    # stopped at 4 iterations without its polish: its iterate overshoots the 10 N box. Judged unclipped, the SQP
+    # refused such plans (here: in 3 of 8 copies within 20 steps; 14 of 32 over 50 steps) and the aged plan lost
+    # the pole; judged and taken clipped, there is nothing to refuse (the env has no other row).
+    cfg = load_config(ROOT / "configs" / "paper_cartpole_gp_mpc.yaml")
+    env, params = make_from_config(cfg)
+    prior = scg_jax.prior_params(env, params, 1.5)
+    options = {"horizon": 20, "terminal_weight": "dare", "solver": "sqp_rti", "qp_solver": "ipm"}
+    options |= {"ipm_max_iter": 4, "ipm_polish_rounds": 0, "ipm_refinement_steps": 0}
+    controller = make_nonlinear_mpc(env, prior, options)
+    reference = Reference(*env.reference(params))
+    keys = jax.random.split(jax.random.key(3), 8)
+    obs, env_state = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
+    state = jax.vmap(controller.reset, in_axes=(0, None))(keys, reference)
+    act = jax.jit(jax.vmap(controller.act, in_axes=(0, 0, None, None)))
+    step = jax.jit(jax.vmap(env.step, in_axes=(0, 0, None)))
+    saturated = 0
+    for k in range(20):
+        u, state = act(state, obs, jnp.asarray(k, jnp.int32), reference)
+        out = step(env_state, u, params)
+        obs, env_state = out.obs, out.state
+        saturated += int(np.sum(np.abs(np.asarray(u)) >= 10.0 - 1e-3))
+    assert np.all(np.asarray(state.num_failures) == 0)
+    assert saturated >= 8  # the box binds
 
 
 def test_sqp_rti_steps_never_retrace_and_repeat_exactly(cartpole_episodes):

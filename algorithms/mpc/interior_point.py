@@ -574,10 +574,17 @@ def _violation(rows: _Rows, x, u):
     return jnp.max(jnp.maximum(over, 0.0) * scales)
 
 
+def inputs_plan(layout: Layout, qp: HorizonQP, x_init, u):
+    """``(x, violation)``: the states ``x (N + 1, nx)`` (``x[0] = x_init``) the inputs ``u (N, nu)`` give through the
+    QP's model, and the largest violation of a row of ``qp`` by that plan (row units, as ``IPMSolution.violation``)."""
+    x = _rollout(qp, x_init, u)
+    return jnp.concatenate([jnp.asarray(x_init, x.dtype)[None], x], axis=0), _violation(_make_rows(layout, qp), x, u)
+
+
 def inputs_violation(layout: Layout, qp: HorizonQP, x_init, u):
     """The largest violation of a row of ``qp`` (row units, as ``IPMSolution.violation``) by the inputs ``u (N, nu)``
     applied from ``x_init`` through the QP's model: what keeping a plan's inputs would give (SQP's fallback)."""
     return _violation(_make_rows(layout, qp), _rollout(qp, x_init, u), u)
 
 
-__all__ = ["IPMSettings", "IPMSolution", "check_layout", "inputs_violation", "solve"]
+__all__ = ["IPMSettings", "IPMSolution", "check_layout", "inputs_plan", "inputs_violation", "solve"]
