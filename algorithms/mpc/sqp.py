@@ -40,7 +40,9 @@ controller can be built inside ``jax.jit`` from a traced model (one compile per 
 **Failure**: a QP that is infeasible or non-finite moves nothing, and so does one whose plan violates a hard row by
 more than ``fallback_tol`` unless the plan it would leave in place violates the same rows by more (its inputs
 applied from the measured state through the QP's model; that plan only ages, shifted with its last input held, and
-on a 2D quadrotor tracking its circle under a ceiling it held full thrust and flew off). When the very first
+on a 2D quadrotor tracking its circle under a ceiling it held full thrust and flew off). With ``qp_solver="ipm"``
+the plan judged and taken is the interior point's inputs clipped to the QP's input box, with their rollout (an
+iterate stopped at its cap can overshoot the box, and the plan applied is clipped anyway). When the very first
 iteration fails, the input is the shifted previous plan's (or the equilibrium input without one), clipped to the
 box. ``SQPState.num_failures`` counts those steps. Nothing returned is NaN.
 """
