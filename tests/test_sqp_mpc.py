@@ -1,5 +1,6 @@
 """Nonlinear MPC in JAX (``scg_algorithms.mpc.sqp``): SQP's first input against IPOPT's, SQP-RTI's closed-loop RMSE
-against IPOPT's on the same seeded episodes, determinism, no retracing, and option errors."""
+against IPOPT's on the same seeded episodes, the failure rule (under a ceiling; the interior point's clipped plans on
+a wrong model), determinism, no retracing, and option errors."""
 
 from pathlib import Path
 

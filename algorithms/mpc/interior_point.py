@@ -584,7 +584,7 @@ def inputs_plan(layout: Layout, qp: HorizonQP, x_init, u):
 def inputs_violation(layout: Layout, qp: HorizonQP, x_init, u):
     """The largest violation of a row of ``qp`` (row units, as ``IPMSolution.violation``) by the inputs ``u (N, nu)``
     applied from ``x_init`` through the QP's model: what keeping a plan's inputs would give (SQP's fallback)."""
-    return _violation(_make_rows(layout, qp), _rollout(qp, x_init, u), u)
+    return inputs_plan(layout, qp, x_init, u)[1]
 
 
 __all__ = ["IPMSettings", "IPMSolution", "check_layout", "inputs_plan", "inputs_violation", "solve"]

@@ -423,7 +423,7 @@ def _solve_qp(s: _Setup, qp, x0, warm) -> structured.Solution:
     # An iterate stopped at the iteration cap may overshoot the input box (its slacks and residuals are not yet
     # zero); the plan applied is the clipped one, so that is the plan the failure rule judges. Judged unclipped, the
     # paper cart-pole's MPC on its 150% prior (4 iterations, no polish) refused such plans, aged the kept one and
-    # lost the pole in 14 of 32 episodes; clipped, none (tests/test_sqp_mpc.py).
+    # lost the pole in 17 of 32 seeded episodes; clipped, none (tests/test_sqp_mpc.py counts the refusals).
     u = jnp.clip(sol.u, qp.u_low, qp.u_high)
     x, violation = interior_point.inputs_plan(s.layout, qp, x0, u)
     return structured.Solution(
