@@ -111,7 +111,11 @@ class Options(setup.MPCOptions):
     admm_tol: float = option(
         1e-5, "admm: absolute and relative residual tolerance on the scaled QP (0: always run admm_max_iter)"
     )
-    admm_check_every: int = option(5, "admm: iterations between residual checks and step-size updates")
+    admm_check_every: int = option(
+        20,
+        "admm: iterations between residual checks and step-size updates (a step size moved more often slows the "
+        "ADMM: at 5, cold benchmark batches held by a slow copy ran up to 4x longer to the same plans)",
+    )
     admm_polish_rounds: int = option(
         6,
         "admm: active-set polish rounds after the ADMM, at most (0: none; cheaper per step, less accurate at few "
