@@ -2,6 +2,7 @@
 cart-pole (linear batched, nonlinear single episode) and the errors for bad input."""
 
 import functools
+from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
@@ -235,6 +236,32 @@ def test_linear_mpsc_keeps_the_cart_inside(env):
     assert filtered["violating"].any(axis=1).mean() <= 0.05
     assert filtered["x"][:, :, 0].max() <= E.POSITION_BOUND + 1e-3
     assert filtered["correction"].max() > 1.0  # it did intervene
+
+
+def test_the_host_closed_loop_runs_the_batched_loops_episodes(env):
+    """``closed_loop_host`` (for the qpOASES reference in benchmarks/mpsc.py) replays ``closed_loop``'s episodes: with
+    a host filter that passes every input, the same violations and states as the unfiltered batched loop."""
+    params = env.default_params
+    controller = E.setpoint_lqr(env, params)
+    key = jax.random.PRNGKey(3)
+    batched = E.closed_loop(env, params, controller, None, key, 3)
+
+    class PassThrough:
+        is_jax, params = False, None
+
+        def reset(self, key):
+            return 0
+
+        def certify(self, obs, u, params, state):
+            return u, state + 1, SimpleNamespace(feasible=state % 2 == 0)
+
+    host = E.closed_loop_host(env, params, controller, PassThrough(), key, 3)
+    assert host["x"].shape == batched["x"].shape == (3, env.num_steps + 1, env.nx)
+    np.testing.assert_array_equal(host["violating"], batched["violating"])
+    assert host["violating"].any() and not host["violating"].all()
+    np.testing.assert_allclose(host["x"], batched["x"], atol=1e-5)
+    np.testing.assert_array_equal(host["feasible"], np.arange(env.num_steps)[None].repeat(3, 0) % 2 == 0)
+    assert host["correction"].max() == 0.0
 
 
 @pytest.fixture(scope="module")

@@ -82,3 +82,30 @@ def closed_loop(env, params, controller, safety_filter, key, num_episodes: int):
         "correction": np.asarray(correction),
         "x": np.asarray(xs),
     }
+
+
+def closed_loop_host(env, params, controller, safety_filter, key, num_episodes: int):
+    """``closed_loop`` for a host filter (``safety_filter.is_jax`` false: the CasADi qpOASES reference), one copy and
+    step at a time: the same episodes (the same ``key``), the env and the controller jitted. Returns what
+    ``closed_loop`` returns."""
+    reset, step, act = jax.jit(env.reset), jax.jit(env.step), jax.jit(controller)
+    episodes = []
+    for episode_key in jax.random.split(key, num_episodes):
+        obs, state = reset(episode_key, params)
+        fstate = safety_filter.reset(episode_key)
+        records, xs = [], [np.asarray(state.x)]
+        for _ in range(env.num_steps):
+            u_l = np.asarray(act(obs), np.float64)
+            u, fstate, info = safety_filter.certify(np.asarray(obs, np.float64), u_l, safety_filter.params, fstate)
+            out = step(state, jnp.asarray(u, obs.dtype), params)
+            records.append((bool(out.info["constraint_violation"]), bool(info.feasible), np.abs(u - u_l).max()))
+            obs, state = out.obs, out.state
+            xs.append(np.asarray(state.x))
+        episodes.append((np.array(records), np.stack(xs)))
+    records = np.stack([r for r, _ in episodes])
+    return {
+        "violating": records[..., 0].astype(bool),
+        "feasible": records[..., 1].astype(bool),
+        "correction": records[..., 2],
+        "x": np.stack([x for _, x in episodes]),
+    }
