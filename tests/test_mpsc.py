@@ -238,6 +238,19 @@ def test_linear_mpsc_keeps_the_cart_inside(env):
     assert filtered["correction"].max() > 1.0  # it did intervene
 
 
+def test_the_exact_qp_certifies_every_step_of_the_closed_loop(env):
+    """The filter's QP solved to its optimum (qpax, every row of the horizon and the tail) certifies every step of the
+    acceptance experiment and keeps the cart inside its tightened bound (0.484 m here; qpOASES on the host the same,
+    docs/benchmarks/mpsc.md), so the structured solver's uncertified steps are its own inexactness, not plans that do
+    not exist."""
+    params = env.default_params
+    exact = make_linear_mpsc(env, params, {**OPTIONS, "solver": "qpax"})
+    r = E.closed_loop(env, params, E.setpoint_lqr(env, params), exact, jax.random.PRNGKey(0), 16)
+    assert r["feasible"].all()
+    assert not r["violating"].any()
+    assert 0.45 < r["x"][:, :, 0].max() < E.POSITION_BOUND - 0.01  # it rides near the tightened bound, inside
+
+
 def test_the_host_closed_loop_runs_the_batched_loops_episodes(env):
     """``closed_loop_host`` (for the qpOASES reference in benchmarks/mpsc.py) replays ``closed_loop``'s episodes: with
     a host filter that passes every input, the same violations and states as the unfiltered batched loop."""
