@@ -125,21 +125,22 @@ def closed_loop_table(episodes: int) -> str:
     controller = E.setpoint_lqr(env, params)
     key = jax.random.PRNGKey(0)
     prior = prior_params(env, params, 1.5)
+    on_host = (make_linear_mpsc_casadi, E.closed_loop_host)  # the qpOASES filter, one copy at a time on the host
     none = {**OPTIONS, "tightening": "none"}
     margin = {**none, "constraint_margin": 0.03}
     variants = [
         ("unfiltered", None, None),
         ("linear_mpsc, true model", params, OPTIONS),
         ("linear_mpsc qpax 40 it (exact), true model", params, {**OPTIONS, "solver": "qpax"}),
-        ("linear_mpsc_casadi (qpOASES), true model", params, {**OPTIONS, "host": True}),
+        ("linear_mpsc_casadi (qpOASES), true model", params, OPTIONS, on_host),
         ("linear_mpsc, true model, 50 it., step x10", params, {**OPTIONS, **FAST}),
         ("linear_mpsc, true model, polish with the soft rows", params, {**OPTIONS, **EXACT}),
         ("linear_mpsc, true model, tightening none", params, none),
         ("linear_mpsc, 150% prior, reachable tightening", prior, OPTIONS),
         ("linear_mpsc, 150% prior, tightening none", prior, none),
-        ("linear_mpsc_casadi (qpOASES), 150% prior, tightening none", prior, {**none, "host": True}),
+        ("linear_mpsc_casadi (qpOASES), 150% prior, tightening none", prior, none, on_host),
         ("linear_mpsc, 150% prior, none + 0.03 m margin", prior, margin),
-        ("linear_mpsc_casadi (qpOASES), 150% prior, none + 0.03 m margin", prior, {**margin, "host": True}),
+        ("linear_mpsc_casadi (qpOASES), 150% prior, none + 0.03 m margin", prior, margin, on_host),
     ]
     lines = [
         f"Closed loop ({episodes} episodes of {env.num_steps} steps, LQR towards x = {E.SETPOINT} m, bound "
@@ -151,15 +152,14 @@ def closed_loop_table(episodes: int) -> str:
         "| variant | episodes with a violation | violating steps | feasible steps | max x (m) |",
         "|---|---|---|---|---|",
     ]
-    for name, model, options in variants:
-        host = model is not None and options.pop("host", False)
-        make = make_linear_mpsc_casadi if host else make_linear_mpsc
+    for name, model, options, *how in variants:
+        make, run = how[0] if how else (make_linear_mpsc, E.closed_loop)
         try:
             f = None if model is None else make(env, model, options)
         except ValueError as error:
             lines.append(f"| {name} | build refused: {str(error).split(';')[0]} | | | |")
             continue
-        r = (E.closed_loop_host if host else E.closed_loop)(env, params, controller, f, key, episodes)
+        r = run(env, params, controller, f, key, episodes)
         row = (r["violating"].any(axis=1).mean(), r["violating"].mean(), r["feasible"].mean(), r["x"][:, :, 0].max())
         lines.append(f"| {name} | {row[0]:.1%} | {row[1]:.2%} | {row[2]:.1%} | {row[3]:.3f} |")
         print(lines[-1], flush=True)
