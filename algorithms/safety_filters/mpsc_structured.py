@@ -254,6 +254,7 @@ def build(problem) -> StructuredMPSC:
         eps_rel=tol,
         polish_rounds=opts.structured_polish_rounds,
         polish_soft_rows=opts.structured_polish_soft_rows,
+        dual_active_set_steps=opts.structured_dual_active_set_steps,
         adaptive_rho=opts.structured_adaptive_rho,
         rho_scale=opts.structured_rho_scale,
     )
