@@ -141,11 +141,7 @@ class Options:
         "near the LQR's (W: mpsc_structured.plan_weight)",
     )
     solver: str = option("structured", SOLVER_DOC, choices=SOLVERS)
-    structured_max_iter: int = option(
-        300,
-        "structured: ADMM iterations at most per step (stops once converged; the dual active-set steps then finish "
-        "the copies left at the cap)",
-    )
+    structured_max_iter: int = option(300, "structured: ADMM iterations at most per step (stops once converged)")
     structured_tol: float = option(1e-5, "structured: absolute and relative residual tolerance of the scaled QP")
     structured_check_every: int = option(10, "structured: iterations between residual checks and step-size updates")
     structured_polish_rounds: int = option(3, "structured: active-set polish rounds after the ADMM (0: none)")

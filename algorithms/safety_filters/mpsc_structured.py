@@ -247,16 +247,13 @@ def build(problem) -> StructuredMPSC:
         l1=opts.violation_penalty,
     )
     tol = opts.structured_tol  # one option for the absolute and the relative residual tolerance
+    named_alike = ("check_every", "polish_rounds", "polish_soft_rows", "dual_active_set_steps", "adaptive_rho")
     settings = structured.Settings(
         max_iterations=opts.structured_max_iter,
-        check_every=opts.structured_check_every,
         eps_abs=tol,
         eps_rel=tol,
-        polish_rounds=opts.structured_polish_rounds,
-        polish_soft_rows=opts.structured_polish_soft_rows,
-        dual_active_set_steps=opts.structured_dual_active_set_steps,
-        adaptive_rho=opts.structured_adaptive_rho,
         rho_scale=opts.structured_rho_scale,
+        **{name: getattr(opts, f"structured_{name}") for name in named_alike},  # the option is structured_<name>
     )
     scale, _ = plan_weight(problem)
     Q, R, P = problem.Q_lqr, problem.R_lqr, problem.P_lqr
