@@ -140,10 +140,9 @@ def test_the_fixed_iteration_filter_certifies_like_qpoases_with_a_prepared_admm_
     (its products not folded: 2 k n = 2 x 83 x 25 multiplications per iteration against k^2), no polish, float32,
     with the earlier defaults' rows (soft state rows, 8 tail rows; no dual active-set steps, which would run on every
     copy stopped at the cap). Its ADMM holds the 83 rows that are not zero of the QP's 275 (the 8 tail rows exist at
-    the last stage only). It
-    never certifies where qpOASES finds no plan, certifies most of where it does (73.4% against 82.2% on the
-    benchmark's 1,024 states), and its certified inputs are qpOASES's within 1e-2 N (5.1e-3 N measured there)
-    wherever it does not pass the proposal unchanged (a safe proposal passes as it is)."""
+    the last stage only). It never certifies where qpOASES finds no plan, certifies most of where it does (73.4%
+    against 82.2% on the benchmark's 1,024 states), and its certified inputs are qpOASES's within 1e-2 N (5.1e-3 N
+    measured there) wherever it does not pass the proposal unchanged (a safe proposal passes as it is)."""
     fast = {
         "structured_max_iter": 50, "structured_check_every": 50, "structured_tol": 0.0, "structured_polish_rounds": 0,
         "structured_adaptive_rho": False, "structured_rho_scale": 10.0, "violation_penalty": 1e4, "terminal_rows": 8,
