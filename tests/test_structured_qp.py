@@ -327,6 +327,8 @@ def test_bad_layouts_and_settings_name_the_field():
         S.Settings(alpha=2.0)
     with pytest.raises(ValueError, match=r"Settings\.dual_active_set_steps: must be >= 0"):
         S.Settings(dual_active_set_steps=-1)
+    with pytest.raises(ValueError, match=r"Settings\.dual_active_set_steps: must be 0 with polish_soft_rows"):
+        S.Settings(dual_active_set_steps=30, polish_soft_rows=True)
     layout = S.Layout(horizon=2, nx=2, nu=1)
     qp = _qp(layout, *DOUBLE_INTEGRATOR, np.eye(2), np.zeros((1, 1)))
     with pytest.raises(ValueError, match=r"template\.R must be positive definite"):

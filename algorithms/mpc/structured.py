@@ -235,7 +235,7 @@ class Settings:
         dual_active_set_steps: where the ADMM stopped at its cap and no polish round was accepted, at most this
             many steps of Goldfarb and Idnani's dual active-set method on the hard rows (``_dual_active_set``; 0:
             none). The rounds can go round between active sets when the ADMM stopped far from the solution (a
-            degenerate state bound); this method cannot cycle, and a step costs about one round. Not with
+            degenerate state bound); this method cannot cycle, and a step costs about one round. Must be 0 with
             ``polish_soft_rows``.
     """
 
@@ -271,6 +271,10 @@ class Settings:
             raise ValueError(f"Settings.polish_rounds: must be >= 0, got {self.polish_rounds!r}")
         if self.dual_active_set_steps < 0:
             raise ValueError(f"Settings.dual_active_set_steps: must be >= 0, got {self.dual_active_set_steps!r}")
+        if self.dual_active_set_steps and self.polish_soft_rows:
+            raise ValueError(
+                "Settings.dual_active_set_steps: must be 0 with polish_soft_rows (it holds the hard rows only)"
+            )
         if self.polish_tol is not None and self.polish_tol < 0:
             raise ValueError(f"Settings.polish_tol: must be >= 0, got {self.polish_tol!r}")
         for name in ("eps_abs", "eps_rel", "eps_infeasible"):
@@ -777,7 +781,7 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
         lambda carry: (carry[0] + 1, round_(carry[1])),
         batched_like((jnp.zeros((), jnp.int32), init), result.s),
     )
-    if settings.dual_active_set_steps and not exact_soft:
+    if settings.dual_active_set_steps:  # never with polish_soft_rows (Settings)
         # It starts from the ADMM's set, where the rounds started (their last set may be empty: see the method).
         upper, lower = active_sets(result.s, result.y)
         start_side = jnp.where(upper, 1, jnp.where(lower, -1, 0))

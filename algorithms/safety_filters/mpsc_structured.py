@@ -247,12 +247,13 @@ def build(problem) -> StructuredMPSC:
         l1=opts.violation_penalty,
     )
     tol = opts.structured_tol  # one option for the absolute and the relative residual tolerance
-    named_alike = ("check_every", "polish_rounds", "polish_soft_rows", "dual_active_set_steps", "adaptive_rho")
+    named_alike = (
+        "check_every", "polish_rounds", "polish_soft_rows", "dual_active_set_steps", "adaptive_rho", "rho_scale",
+    )  # fmt: skip
     settings = structured.Settings(
         max_iterations=opts.structured_max_iter,
         eps_abs=tol,
         eps_rel=tol,
-        rho_scale=opts.structured_rho_scale,
         **{name: getattr(opts, f"structured_{name}") for name in named_alike},  # the option is structured_<name>
     )
     scale, _ = plan_weight(problem)
