@@ -444,11 +444,13 @@ def _brute_force_qp(H, g, G, lo, hi):
     raise AssertionError("no active set meets the KKT conditions")
 
 
-@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("seed", [0, 1, 2, 3, 23, 31])
 def test_the_dual_active_set_method_finds_the_brute_force_minimiser_from_any_start(seed):
     # Goldfarb and Idnani's method (the polish's fallback) on random strictly convex QPs with 4 variables and 7 rows
     # (a box on each variable and 3 general rows), pushed against their bounds; more rows than variables, so the set
     # is gathered. Its start is the empty set, a set with wrong-signed rows to drop, or more rows than it can hold.
+    # From the empty set, seeds 23 and 31 drop held rows on the way (2 and 3 times: a held multiplier reaches zero
+    # before the row taken up meets its bound); seeds 0-3 only add rows.
     rng = np.random.default_rng(seed)
     n, p = 4, 7
     M = rng.normal(size=(n, n))
