@@ -471,7 +471,10 @@ def test_the_dual_active_set_method_finds_the_brute_force_minimiser_from_any_sta
             v = v - inv_G[:, index] @ lam
             return v, G_ @ v
 
-        ops = S._PolishOps(free, lambda index: G_[index] @ inv_G[:, index], correct)
+        def column(index, j):
+            return G_[index] @ inv_G[:, j], G_[j] @ inv_G[:, j]
+
+        ops = S._PolishOps(free, lambda index: G_[index] @ inv_G[:, index], correct, column)
         primal_free, s_free = free(jnp.zeros(p))
         starts = {"empty": np.zeros(p), "wrong signs": -np.sign(y_expected), "too many": np.ones(p)}
         for name, start_side in starts.items():

@@ -661,12 +661,15 @@ class _PolishOps(NamedTuple):
 
     - ``free(y) -> (primal, s)``: the minimiser of the objective plus ``y^T G v`` (no rows) and its rows;
     - ``schur(index) -> S``: ``G_I H^-1 G_I^T`` (k, k) of the rows ``index`` ((k,), or ``slice(None)``: every row);
-    - ``correct(primal, index, lam) -> (primal, s)``: the minimiser with the extra force ``G_I^T lam``.
+    - ``correct(primal, index, lam) -> (primal, s)``: the minimiser with the extra force ``G_I^T lam``;
+    - ``column(index, j) -> (S_Ij (k,), S_jj)``: one column of ``G H^-1 G^T`` on the rows ``index`` and its diagonal
+      entry at row ``j``.
     """
 
     free: Any
     schur: Any
     correct: Any
+    column: Any
 
 
 def _rows_first(priority, k: int, levels: int = 2):
@@ -816,13 +819,18 @@ def _dual_active_set(ops: _PolishOps, hard, lo, hi, primal_free, s_free, start_s
     sign: each step takes the most violated row ``j`` and raises its force until ``j`` reaches its bound (it joins
     the set) or a held row's multiplier reaches zero first (that row leaves, and the next step takes ``j`` up
     again). The objective rises at every step, so it cannot cycle. The set's equations are the polish's Schur
-    system: one ``(k, k)`` Cholesky per step.
+    system, whose inverse is computed once (one ``(k, k)`` Cholesky) and then follows the set: a row that joins or
+    leaves changes it by a rank-one update and one row and column (``O(k^2)`` per step, where a factor per step costs
+    ``O(k^3)`` and forming the set's Schur matrix ``O(k^2 n)``). The found set's forces are then solved afresh, so the
+    updates' round-off does not reach the plan.
 
     It starts from ``start_side`` (+1: the row held at its upper bound, -1: at its lower, 0: free), less the rows
     whose multipliers come out with the wrong sign (at most ``RESTORE_ROUNDS`` solves), or from the empty set when
     that does not settle or the set holds more than ``k`` rows. It stops when no free row is violated by more than
     half of ``tol``, after ``max_steps`` steps, or when ``j`` cannot be met (it depends on the set and no held
-    multiplier can give way: the rows are infeasible); the caller checks the result as it checks a round's.
+    multiplier can give way: the rows are infeasible); the caller checks the result as it checks a round's. The
+    inverse and the steps run only for a batch where some copy's start is not yet the answer (most batches that need
+    the method at all start at it: the ADMM's set, restored, is already optimal).
     ``skip``: the copy needs none (the loops then do not run for it; under ``vmap``, they run while any copy of the
     batch needs them).
 
@@ -836,38 +844,60 @@ def _dual_active_set(ops: _PolishOps, hard, lo, hi, primal_free, s_free, start_s
     # its force would be round-off.
     dependent = float(np.sqrt(np.finfo(dtype).eps))
 
+    slot = jnp.arange(k)
+
     def step(carry):
-        side, lam, j, sigma, _, _, steps, (_, s) = carry
-        held = side != 0
-        # The set first, then the row being added, then padding: the first k take part (all when they fit).
-        index = rows if k == p else _rows_first(jnp.where(held, 0, jnp.where(rows == j, 1, 2)), k, levels=3)
-        S = ops.schur(index)
-        in_set = held[index].astype(dtype)
-        e_j = (index == j).astype(dtype)
+        side, lam, j, sigma, _, _, steps, (_, s), (slots, valid, W) = carry
+        # W: the inverse of the held rows' Schur matrix, kept in the slots ``valid`` (identity on the others).
         # d: the held multipliers' change per unit of j's force, which keeps the held rows at their bounds.
-        column = S @ e_j
-        d = _solve_held(S, in_set, -sigma * column)
+        column, S_jj = ops.column(slots, j)
+        column = jnp.where(valid, column, 0.0)
+        w = W @ column
+        d = -sigma * w
         # c: how far j moves towards its bound per unit of force (its Schur complement on the set).
-        c = e_j @ column + sigma * (column @ d)
+        c = S_jj - column @ w
         excess = sigma * (s[j] - jnp.where(sigma > 0, hi[j], lo[j]))  # j's violation (its bound is finite)
-        full = jnp.where(c > dependent * (e_j @ column), jnp.maximum(excess, 0.0) / c, jnp.inf)
-        lam_index = lam[index]
-        releasing = (in_set > 0) & (lam_index * d < 0)
-        partial_at = jnp.where(releasing, -lam_index / jnp.where(releasing, d, 1.0), jnp.inf)
+        full = jnp.where(c > dependent * S_jj, jnp.maximum(excess, 0.0) / c, jnp.inf)
+        lam_slots = jnp.where(valid, lam[slots], 0.0)
+        releasing = valid & (lam_slots * d < 0)
+        partial_at = jnp.where(releasing, -lam_slots / jnp.where(releasing, d, 1.0), jnp.inf)
         partial = jnp.min(partial_at)
         t = jnp.minimum(full, partial)
-        stuck = ~jnp.isfinite(t) | (jnp.sum(held) >= k)  # j cannot be met
+        stuck = ~jnp.isfinite(t) | jnp.all(valid)  # j cannot be met
         t = jnp.where(stuck, 0.0, t)
-        lam = lam.at[index].add(t * (d + sigma * e_j))
+        lam = lam.at[slots].add(jnp.where(valid, t * d, 0.0)).at[j].add(t * sigma)
         joins = ~stuck & (full <= partial)
-        leaving = index[jnp.argmin(partial_at)]
         leaves = ~stuck & ~joins
+        out = jnp.argmin(partial_at)  # the slot of the row that leaves
+        leaving = slots[out]
         lam = jnp.where(leaves & (rows == leaving), 0.0, lam)
         side = jnp.where(leaves & (rows == leaving), 0, side)
         side = jnp.where(joins & (rows == j), sigma.astype(side.dtype), side)
-        # The rows held now, and j, are among index's: the new plan needs no new gather.
-        plan = ops.correct(primal_free, index, lam[index])
-        return pick(side, lam, jnp.where(joins, -1, j), sigma, stuck, steps + 1, *plan)
+        # The inverse follows the set in O(k^2), where a new factor costs O(k^3) and its Schur matrix O(k^2 n): j
+        # joins in a free slot (the bordered inverse), or the leaving row's slot is freed (the inverse of the rest).
+        # Both are a rank-one change of the other slots' block and a new row and column at one slot g, written in one
+        # pass over W: joining, W + w w^T / c, and j's border (-w / c, 1 / c) at the free slot; leaving,
+        # W - W e_o e_o^T W / W_oo, and the identity's row and column at the slot o (set exactly, not left to
+        # rounding, since a later join reads that slot as padding).
+        free_slot = jnp.argmin(valid)
+        g = jnp.where(joins, free_slot, out)
+        at_g = (slot == g) & (joins | leaves)
+        c_safe = jnp.where(joins, c, 1.0)
+        z = jnp.where(joins, w, W[:, out])
+        alpha = jnp.where(joins, 1.0 / c_safe, jnp.where(leaves, -1.0 / W[out, out], 0.0))
+        border = jnp.where(slot == g, 1.0, jnp.where(valid, -w, 0.0)) / c_safe
+        edge = jnp.where(joins, border, (slot == g).astype(dtype))
+        W = jnp.where(
+            at_g[:, None], edge[None, :], jnp.where(at_g[None, :], edge[:, None], W + alpha * z[:, None] * z[None, :])
+        )
+        slots = jnp.where(joins & (slot == free_slot), j, slots).astype(slots.dtype)
+        valid = jnp.where(joins & (slot == free_slot), True, jnp.where(leaves & (slot == out), False, valid))
+        # The rows with a force now: the set and j (whose force stays while a row left; after it joined, its force
+        # is in the set's).
+        index = jnp.concatenate([slots, j[None]])
+        force = jnp.where(jnp.concatenate([valid, ~joins[None]]), lam[index], 0.0)
+        plan = ops.correct(primal_free, index, force)
+        return (*pick(side, lam, jnp.where(joins, -1, j), sigma, stuck, steps + 1, *plan), (slots, valid, W))
 
     def solution(side, lam):
         held = (side != 0) | (lam != 0)
@@ -904,9 +934,32 @@ def _dual_active_set(ops: _PolishOps, hard, lo, hi, primal_free, s_free, start_s
         cold = unsettled | ~jnp.all(jnp.isfinite(lam))
         side, lam = jnp.where(cold, 0, side), jnp.where(cold, 0.0, lam)
         start = pick(side, lam, -1 + zero, jnp.ones((), dtype), jnp.zeros((), bool), zero, *solution(side, lam))
-        side, lam, _, _, _, _, _, (primal, s) = lax.while_loop(
-            lambda c: ~skip & ~c[4] & ~c[5] & (c[6] < max_steps), step, batched_like(start, s_free)
-        )
+        carry = batched_like(start, s_free)
+        need = ~skip & ~carry[4] & ~carry[5] & (carry[6] < max_steps)
+
+        def incremental(carry):
+            side = carry[0]
+            held = side != 0
+            slots = _rows_first(jnp.where(held, 0, 1), k)
+            valid = slot < jnp.sum(held)
+            in_set = valid.astype(dtype)
+            M = in_set[:, None] * ops.schur(slots) * in_set[None, :] + jnp.diag(1.0 - in_set)
+            W = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(M), True), jnp.eye(k, dtype=dtype))
+            out = lax.while_loop(
+                lambda c: need & ~c[4] & ~c[5] & (c[6] < max_steps),
+                step,
+                batched_like((*carry, (slots, valid, W)), s_free),
+            )
+            side, lam, _, _, met, _, _, (primal, s), _ = out
+            index, lam_index = _forces_at_bounds(ops, side, lo, hi, s_free, k)
+            fresh = ops.correct(primal_free, index, lam_index)
+            done = need & met
+            primal, s = (jnp.where(done, a, b) for a, b in zip(fresh, (primal, s), strict=True))
+            lam = jnp.where(done, jnp.zeros(p, dtype).at[index].set(lam_index), lam)
+            return (side, lam, *out[2:7], (primal, s))
+
+        _, carry = lax.while_loop(lambda c: c[0], lambda c: (jnp.zeros((), bool), incremental(c[1])), (need, carry))
+        side, lam, _, _, _, _, _, (primal, s) = carry
         return primal, s, lam
 
     # One pass at most, not lax.cond: under vmap a cond computes both branches for every copy, this loop's body runs
@@ -1065,7 +1118,10 @@ def solve(layout: Layout, qp: HorizonQP, x_init, warm: Warm | None = None, setti
             v = v - inv_G[:, index] @ lam
             return v, Gs @ v
 
-        result = _polish(layout, _PolishOps(free, schur, correct), data, result, settings)
+        def column(index, j):
+            return Gs[index] @ inv_G[:, j], Gs[j] @ inv_G[:, j]
+
+        result = _polish(layout, _PolishOps(free, schur, correct, column), data, result, settings)
     return _finish(layout, data, (Ex, ex), x_init, result, result.primal)
 
 
@@ -1287,7 +1343,11 @@ def solve_prepared(
             xi = xi - (pr.GT[index].T @ lam) / pr.lam
             return xi, pr.GT @ xi
 
-        result = _polish(layout, _PolishOps(free, schur, correct), data, result, settings, keep)
+        def column(index, j):
+            row = pr.GT[j] / pr.lam
+            return pr.GT[index] @ row, pr.GT[j] @ row
+
+        result = _polish(layout, _PolishOps(free, schur, correct, column), data, result, settings, keep)
         v = pr.T @ result.primal
     else:
         v = ops.to_v(result.primal)
