@@ -935,7 +935,7 @@ def _dual_active_set(ops: _PolishOps, hard, lo, hi, primal_free, s_free, start_s
         side, lam = jnp.where(cold, 0, side), jnp.where(cold, 0.0, lam)
         start = pick(side, lam, -1 + zero, jnp.ones((), dtype), jnp.zeros((), bool), zero, *solution(side, lam))
         carry = batched_like(start, s_free)
-        need = ~skip & ~carry[4] & ~carry[5] & (carry[6] < max_steps)
+        need = ~skip & ~carry[4]  # not yet met (a start is never stuck, and max_steps >= 1 here)
 
         def incremental(carry):
             side = carry[0]
