@@ -973,7 +973,8 @@ def _dual_active_set(ops: _PolishOps, hard, lo, hi, primal_free, s_free, start_s
 
 
 def _start(data: _Scaled, warm: Warm | None, settings: Settings, rho0):
-    """Scaled ``(s0, y0, t0)`` from a warm start in problem units (cold: the pre-stabilised trajectory, y = 0)."""
+    """Scaled ``(s0, y0, t0)`` from a warm start in problem units, holding the rows of ``data`` (cold, or a warm
+    start with a non-finite entry there: the pre-stabilised trajectory, y = 0)."""
     dtype = data.lo.dtype
     p = data.lo.shape[0]
     if warm is None:
@@ -986,9 +987,10 @@ def _start(data: _Scaled, warm: Warm | None, settings: Settings, rho0):
     return s0, y0, t0
 
 
-def _finish(layout: Layout, data: _Scaled, maps, x_init, result: _Result, v) -> Solution:
+def _finish(layout: Layout, data: _Scaled, row_bounds, spread, maps, x_init, result: _Result, v) -> Solution:
     """The ``Solution`` (never NaN: after a non-finite iterate, the pre-stabilised trajectory clipped, status
-    NUMERICAL)."""
+    NUMERICAL). ``data`` and ``result`` hold the rows the ADMM held; ``spread`` maps them to every row of the layout
+    (0 at the others: their value at every plan); ``row_bounds``: ``(low, high)`` (p,) of every row in row units."""
     N, R = layout.horizon, layout.stage_rows
     Ex, ex = maps
     ok = result.status != NUMERICAL
@@ -996,15 +998,15 @@ def _finish(layout: Layout, data: _Scaled, maps, x_init, result: _Result, v) -> 
     s = jnp.where(ok, result.s, jnp.clip(jnp.zeros_like(result.s), data.lo, data.hi))
     y = jnp.where(ok, result.y, 0.0)
     t = jnp.where(ok, result.t, 0.0)
-    values = jnp.where(jnp.isfinite(data.off), s * data.norms + data.off, 0.0)
-    multipliers = y * data.scale / data.norms
+    values = spread(jnp.where(jnp.isfinite(data.off), s * data.norms + data.off, 0.0))
+    multipliers = spread(y * data.scale / data.norms)
     x = jnp.concatenate([x_init[None], jnp.einsum("kxn,n->kx", Ex, v) + ex], axis=0)
     x = jnp.where(jnp.isfinite(x), x, 0.0)
     stages = values.reshape(N, R)
     return Solution(
         u=stages[:, : layout.nu],
         x=x,
-        slack=_slack(layout, data, stages),
+        slack=_slack(layout, row_bounds, stages),
         multipliers=multipliers.reshape(N, R),
         warm=Warm(values, multipliers, t),
         status=result.status,
@@ -1015,14 +1017,14 @@ def _finish(layout: Layout, data: _Scaled, maps, x_init, result: _Result, v) -> 
     )
 
 
-def _slack(layout: Layout, data: _Scaled, stages):
-    """(N, stage_rows) violations of the soft rows (row units), 0 for the hard rows."""
+def _slack(layout: Layout, row_bounds, stages):
+    """(N, stage_rows) violations of the soft rows (row units), 0 for the hard rows; ``row_bounds``: ``(low,
+    high)`` (p,) of every row."""
     N, R = layout.horizon, layout.stage_rows
     mask = np.asarray(layout.soft)
     if not mask.any():
         return jnp.zeros((N, R), stages.dtype)
-    lo = (data.lo * data.norms + data.off).reshape(N, R)
-    hi = (data.hi * data.norms + data.off).reshape(N, R)
+    lo, hi = (jnp.reshape(a, (N, R)) for a in row_bounds)
     excess = jnp.where(mask, jnp.maximum(stages - hi, 0.0) + jnp.maximum(lo - stages, 0.0), 0.0)
     if layout.slack == "shared":
         upper = jnp.max(jnp.maximum(stages - hi, 0.0), axis=0)
@@ -1122,7 +1124,8 @@ def solve(layout: Layout, qp: HorizonQP, x_init, warm: Warm | None = None, setti
             return Gs[index] @ inv_G[:, j], Gs[j] @ inv_G[:, j]
 
         result = _polish(layout, _PolishOps(free, schur, correct, column), data, result, settings)
-    return _finish(layout, data, (Ex, ex), x_init, result, result.primal)
+    row_bounds = (data.lo * data.norms + data.off, data.hi * data.norms + data.off)
+    return _finish(layout, data, row_bounds, lambda a: a, (Ex, ex), x_init, result, result.primal)
 
 
 # --------------------------------------------------------------------------------------------- shared path
@@ -1136,7 +1139,8 @@ class Prepared(NamedTuple):
             eigenvalues. T: (n, n).
         rho: the initial step size (``settings.rho`` or ``lam.min()``, times ``settings.rho_scale``).
         keep: (k,) the rows that are not zero for the whole family (a nonzero row of ``G`` or of the offsets; all
-            rows with shared slacks); the others' values are 0 at every ``v`` and the ADMM leaves them out. fixed:
+            rows with shared slacks); the others' values are 0 at every ``v`` and the ADMM leaves them out. place:
+            (p,) each row's position in ``keep``, ``k`` for the rows left out. fixed:
             ``None`` unless ``adaptive_rho=False`` and ``k <= 2 n``: ``GT diag(1 / (lam + rho)) GT^T`` (k, k).
         h_map: (n, len(vectors)): ``T^T g / scale = h_map vectors``.
         off_map: (k, len(theta)): the kept rows' values at ``v = 0``. ex_map: (N nx, len(theta)): the states there.
@@ -1148,6 +1152,7 @@ class Prepared(NamedTuple):
     T: Any
     rho: Any
     keep: Any
+    place: Any
     fixed: Any
     h_map: Any
     off_map: Any
@@ -1226,6 +1231,8 @@ def prepare(layout: Layout, template: HorizonQP, settings: Settings = Settings()
     # Shared slacks price each row over the whole horizon: every row takes part there.
     nonzero = np.any(Gs != 0, axis=1) | np.any(off_map != 0, axis=1) | (layout.slack == "shared")
     keep = np.flatnonzero(nonzero)
+    place = np.full(layout.num_dense, keep.size)
+    place[keep] = np.arange(keep.size)
     GT = GT[keep]
     fold = not settings.adaptive_rho and keep.size <= 2 * layout.num_decisions
     fixed = (GT / (lam + rho)) @ GT.T if fold else None
@@ -1236,6 +1243,7 @@ def prepare(layout: Layout, template: HorizonQP, settings: Settings = Settings()
         T=cast(T),
         rho=cast(rho),
         keep=jnp.asarray(keep, jnp.int32),
+        place=jnp.asarray(place, jnp.int32),
         fixed=cast(fixed),
         h_map=cast(T.T @ g_map / scale),
         off_map=cast(off_map[keep]),
@@ -1262,6 +1270,7 @@ def solve_prepared(
     bounds,
     warm: Warm | None = None,
     settings: Settings = Settings(),
+    warm_steps=0,
 ) -> Solution:
     """Solve one QP of a ``prepare``-d family (jit/vmap-able; ``prepared`` is shared by the copies).
 
@@ -1270,6 +1279,9 @@ def solve_prepared(
         x_init: (nx,). c: (N, nx). q: (N, nx). r: (N, nu): this copy's vectors (see ``HorizonQP``).
         bounds: ``(u_low, u_high, x_low, x_high, row_low, row_high)`` shaped as in ``HorizonQP``.
         warm: a ``Warm`` or ``None``. settings: ``Settings``.
+        warm_steps: start from ``shift(layout, warm, warm_steps)`` (>= 0, may be traced; default 0: ``warm`` as
+            given), read in one gather of the rows the solver holds: pass a previous solution's ``warm`` with
+            ``warm_steps=1`` rather than shifting it first.
 
     Returns:
         ``Solution``.
@@ -1282,7 +1294,9 @@ def solve_prepared(
     theta = jnp.concatenate([x_init, flat(c)])
     h = pr.h_map @ jnp.concatenate([theta, flat(q), flat(r)])  # T^T g / scale
     bounds = tuple(jnp.asarray(b, dtype) for b in bounds)
-    # The ADMM and the polish hold the kept rows only (a static count); the others' values are 0 at every v.
+    # The ADMM and the polish hold the kept rows only (a static count); the others' values are 0 at every v. Only
+    # the warm start in and the solution out hold every row: under vmap every full-layout vector is a pass over
+    # memory per copy, and the kept rows are a third of the layout or less (MPSC, tail rows at the last stage).
     if pr.keep.shape[0] == layout.num_dense:
         keep, kept, spread = None, lambda a: a, lambda a: a
     else:
@@ -1292,16 +1306,24 @@ def solve_prepared(
             return a[keep]
 
         def spread(a):
-            return jnp.zeros(layout.num_dense, dtype).at[keep].set(a)
+            # A gather, not a scatter into zeros: under vmap XLA's CPU scatter writes one entry at a time.
+            return jnp.concatenate([a, jnp.zeros(1, dtype)])[pr.place]
 
-    full = _scaled(layout, spread(pr.off_map @ theta), bounds, pr.norms, pr.scale)
-    data = full if keep is None else _Scaled(*(kept(a) for a in full[:4]), full.scale)
+    row_bounds = _row_bounds(layout, *bounds)  # every row's (low, high): shared by the copies when the bounds are
+    off = pr.off_map @ theta  # the kept rows' values at v = 0
+    norms = kept(pr.norms)
+    data = _Scaled(lo=(kept(row_bounds[0]) - off) / norms, hi=(kept(row_bounds[1]) - off) / norms, off=off,
+                   norms=norms, scale=pr.scale)  # fmt: skip
 
+    # Products with this copy's vector on the left (``w @ GT`` for ``GT^T w``): under vmap the batch then stays the
+    # leading axis of the result, where ``GT @ xi`` gives (k, copies) and every use after it reads across the batch
+    # (in the ADMM's loop that transposed read cost four times the product).
+    GT_t = pr.GT.T
     if pr.fixed is None:
 
         def update(s, y, t, factor):
-            xi = (pr.GT.T @ (t * s - y) - h) / (pr.lam + t)
-            return xi, pr.GT @ xi
+            xi = ((t * s - y) @ pr.GT - h) / (pr.lam + t)
+            return xi, xi @ GT_t
 
         def to_xi(primal):
             return primal
@@ -1310,60 +1332,67 @@ def solve_prepared(
         shift_h = pr.GT @ (h / (pr.lam + pr.rho))
 
         def update(s, y, t, factor):
-            # One (k, k) product per iteration; xi~ = (GT^T (t s - y) - h) / (lam + rho) only at the checks.
-            return t * s - y, pr.fixed @ (t * s - y) - shift_h
+            # One (k, k) product per iteration (fixed is symmetric); xi~ = (GT^T (t s - y) - h) / (lam + rho) only
+            # at the checks.
+            return t * s - y, (t * s - y) @ pr.fixed - shift_h
 
         def to_xi(primal):
-            return (pr.GT.T @ primal - h) / (pr.lam + pr.rho)
+            return (primal @ pr.GT - h) / (pr.lam + pr.rho)
 
     def dual(primal, y):
         # T^T (H v + g + G^T y) with T^T H T = diag(lam): the dual residual in the coordinates xi.
         xi = to_xi(primal)
-        GTy = pr.GT.T @ y
+        GTy = y @ pr.GT
         return pr.lam * xi + h + GTy, (pr.lam * xi, GTy, h)
 
-    ops = _Operators(update, lambda t, factor: (factor, t), dual, lambda y: pr.GT.T @ y, lambda p: pr.T @ to_xi(p))
-    s0, y0, t0 = _start(full, warm, settings, pr.rho)  # a cold start: the prepared step size (rho_scale in it)
+    ops = _Operators(update, lambda t, factor: (factor, t), dual, lambda y: y @ pr.GT, lambda p: to_xi(p) @ pr.T.T)
+    if warm is not None:
+        # Each held row's source in the warm start, moved warm_steps stages ahead (``shift``) in one gather. The
+        # left-out rows' entries are never read (nor checked for being finite).
+        R = layout.stage_rows
+        stage = jnp.minimum(jnp.arange(N) + warm_steps, N - 1)
+        source = kept((stage[:, None] * R + jnp.arange(R)).reshape(-1))
+        warm = Warm(jnp.asarray(warm.values)[source], jnp.asarray(warm.multipliers)[source], warm.rho)
+    s0, y0, t0 = _start(data, warm, settings, pr.rho)  # a cold start: the prepared step size (rho_scale in it)
     if not settings.adaptive_rho:  # the prepared step size throughout (the folded products are for it)
         t0 = pr.rho
-    result = _admm(layout, ops, data, kept(s0), kept(y0), t0, (), settings, keep)
+    result = _admm(layout, ops, data, s0, y0, t0, (), settings, keep)
     if settings.polish_rounds:
         # In the coordinates xi (T^T H T = diag(lam)); on the folded path the primal becomes xi here.
         result = result._replace(primal=to_xi(result.primal))
 
         def free(y):
-            xi = -(h + pr.GT.T @ y) / pr.lam
-            return xi, pr.GT @ xi
+            xi = -(h + y @ pr.GT) / pr.lam
+            return xi, xi @ GT_t
 
         def schur(index):
             rows = pr.GT[index]
             return (rows / pr.lam) @ rows.T
 
         def correct(xi, index, lam):
-            xi = xi - (pr.GT[index].T @ lam) / pr.lam
-            return xi, pr.GT @ xi
+            xi = xi - (lam @ pr.GT[index]) / pr.lam
+            return xi, xi @ GT_t
 
         def column(index, j):
             row = pr.GT[j] / pr.lam
             return pr.GT[index] @ row, pr.GT[j] @ row
 
         result = _polish(layout, _PolishOps(free, schur, correct, column), data, result, settings, keep)
-        v = pr.T @ result.primal
+        v = result.primal @ pr.T.T
     else:
         v = ops.to_v(result.primal)
     if keep is not None:
         # A left-out row's value is 0 at every plan: a hard one whose interval excludes 0 makes the QP infeasible.
         left_out = jnp.ones(layout.num_dense, bool).at[keep].set(False)
-        miss = jnp.maximum(full.lo, -full.hi) * full.norms  # (scaled bounds with a zero offset) the distance of 0
+        miss = jnp.maximum(row_bounds[0], -row_bounds[1])  # the distance of 0 from the interval, in row units
         miss = jnp.max(jnp.where(left_out & (jnp.asarray(_soft_mask(layout)) == 0), miss, 0.0), initial=0.0)
         infeasible = (miss > 0) & (result.status != NUMERICAL)
         result = result._replace(
             status=jnp.where(infeasible, INFEASIBLE, result.status).astype(jnp.int32),
             violation=jnp.maximum(result.violation, miss),
         )
-    result = result._replace(s=spread(result.s), y=spread(result.y))
     ex = (pr.ex_map @ theta).reshape(N, nx)
-    return _finish(layout, full, (pr.Ex, ex), x_init, result, v)
+    return _finish(layout, data, row_bounds, spread, (pr.Ex, ex), x_init, result, v)
 
 
 # --------------------------------------------------------------------------------------------- warm start
@@ -1371,6 +1400,15 @@ def shift(layout: Layout, warm: Warm, steps=1) -> Warm:
     """The warm start for the QP ``steps`` (>= 0, may be traced) control steps later: every stage's rows and
     multipliers move ``steps`` stages ahead (the last stage repeated); ``rho`` is kept."""
     N, R = layout.horizon, layout.stage_rows
+    if isinstance(steps, int) and steps >= 0:
+        # A static count: slices (a gather's index would be a traced array, and under vmap XLA's CPU gather of
+        # whole stages transposes the batch).
+        def move(a):
+            a = jnp.asarray(a)
+            moved = a[min(steps, N - 1) * R :]
+            return jnp.concatenate([moved] + [a[(N - 1) * R :]] * (N - moved.shape[0] // R))
+
+        return Warm(move(warm.values), move(warm.multipliers), warm.rho)
     index = jnp.minimum(jnp.arange(N) + steps, N - 1)
 
     def move(a):

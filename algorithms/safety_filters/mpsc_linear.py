@@ -558,9 +558,9 @@ def make_linear_mpsc(env, prior_params, options=None, plant_params=None) -> Filt
         """``(v (nz,), warm, usable, u_least)`` of the structured solver (``usable``: not numerical; ``u_least``: the
         first input of the least-violating plan, the plain LQR's after a numerical failure)."""
         prepared, c, q, r, bounds = params.structured
-        warm = structured.shift(smpsc.layout, state.warm) if opts.warm_start else None
+        warm = state.warm if opts.warm_start else None  # the previous plan, one stage on (warm_steps=1)
         sol = structured.solve_prepared(
-            smpsc.layout, prepared, x, c, q, r.at[0].add(-u_target), bounds, warm, smpsc.settings
+            smpsc.layout, prepared, x, c, q, r.at[0].add(-u_target), bounds, warm, smpsc.settings, warm_steps=1
         )
         # The plan's decisions in the ancillary parametrisation, where the tail's rows (G) are written.
         v = sol.u + (sol.x[:H] - params.x_bar) @ params.K.T - params.u_bar
