@@ -380,6 +380,35 @@ def test_rows_zero_at_every_stage_but_one_are_left_out_of_the_prepared_admm_and_
     assert np.all(np.asarray(sols.warm.values).reshape(6, 20, 3)[:, :-1, 2] == 0.0)
 
 
+def test_a_warm_start_read_steps_ahead_is_the_shifted_one_and_its_left_out_entries_are_not_read():
+    # warm_steps gathers the held rows of the warm start moved ahead in one step: the same start as shift (static or
+    # traced step counts, past the horizon too), so the same plan, bit for bit. 30 iterations without a polish
+    # leave the plan where its start put it, so a warm start that was not used would show.
+    layout, qp = _terminal_row_problem(soft=False)
+    bounds = tuple(qp[8:12]) + tuple(qp[14:])
+    settings = S.Settings(max_iterations=30, check_every=10, polish_rounds=0, dual_active_set_steps=0)
+    prepared = S.prepare(layout, qp, settings)
+    solve = jax.jit(
+        lambda x, warm, steps: _solve_prepared(layout, prepared, x, qp.c, qp.q, qp.r, bounds, warm, settings, steps)
+    )
+    x0, x1 = jnp.asarray(TERMINAL_STARTS[0], jnp.float32), jnp.asarray(TERMINAL_STARTS[1], jnp.float32)
+    previous = solve(x0, None, 0).warm
+    cold = solve(x1, None, 0)
+    for steps in (0, 1, 3, 25):
+        shifted = S.shift(layout, previous, steps)
+        for a, b in zip(shifted, S.shift(layout, previous, jnp.int32(steps)), strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))  # the static and the traced shift agree
+        read_ahead, given = solve(x1, previous, steps), solve(x1, shifted, 0)
+        for a, b in zip(jax.tree.leaves(read_ahead), jax.tree.leaves(given), strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        assert np.abs(np.asarray(read_ahead.u) - np.asarray(cold.u)).max() > 1e-6  # the warm start was used
+    # A left-out row's entry (the terminal row's zero copies) is never read: a NaN there changes nothing.
+    values = np.asarray(previous.values).copy()
+    values[2] = np.nan  # stage 0's general row, zero at every plan
+    poisoned = solve(x1, previous._replace(values=jnp.asarray(values)), 1)
+    np.testing.assert_array_equal(np.asarray(poisoned.u), np.asarray(solve(x1, previous, 1).u))
+
+
 def test_a_left_out_row_whose_bounds_exclude_zero_makes_the_problem_infeasible():
     # The terminal row's zero copy at stage 3 given the bound 0 <= -0.5: no plan meets it, though the ADMM never
     # sees the row. The status says so, and the violation is the row's distance from 0.
