@@ -1292,7 +1292,8 @@ def solve_prepared(
     flat = lambda a: jnp.reshape(jnp.asarray(a, dtype), -1)  # noqa: E731
     x_init = jnp.asarray(x_init, dtype)
     theta = jnp.concatenate([x_init, flat(c)])
-    h = pr.h_map @ jnp.concatenate([theta, flat(q), flat(r)])  # T^T g / scale
+    # The copy's vectors on the left of every product here (see GT_t below).
+    h = jnp.concatenate([theta, flat(q), flat(r)]) @ pr.h_map.T  # T^T g / scale
     bounds = tuple(jnp.asarray(b, dtype) for b in bounds)
     # The ADMM and the polish hold the kept rows only (a static count); the others' values are 0 at every v. Only
     # the warm start in and the solution out hold every row: under vmap every full-layout vector is a pass over
@@ -1310,7 +1311,7 @@ def solve_prepared(
             return jnp.concatenate([a, jnp.zeros(1, dtype)])[pr.place]
 
     row_bounds = _row_bounds(layout, *bounds)  # every row's (low, high): shared by the copies when the bounds are
-    off = pr.off_map @ theta  # the kept rows' values at v = 0
+    off = theta @ pr.off_map.T  # the kept rows' values at v = 0
     norms = kept(pr.norms)
     data = _Scaled(lo=(kept(row_bounds[0]) - off) / norms, hi=(kept(row_bounds[1]) - off) / norms, off=off,
                    norms=norms, scale=pr.scale)  # fmt: skip
@@ -1329,7 +1330,7 @@ def solve_prepared(
             return primal
 
     else:
-        shift_h = pr.GT @ (h / (pr.lam + pr.rho))
+        shift_h = (h / (pr.lam + pr.rho)) @ GT_t
 
         def update(s, y, t, factor):
             # One (k, k) product per iteration (fixed is symmetric); xi~ = (GT^T (t s - y) - h) / (lam + rho) only
@@ -1391,7 +1392,7 @@ def solve_prepared(
             status=jnp.where(infeasible, INFEASIBLE, result.status).astype(jnp.int32),
             violation=jnp.maximum(result.violation, miss),
         )
-    ex = (pr.ex_map @ theta).reshape(N, nx)
+    ex = (theta @ pr.ex_map.T).reshape(N, nx)
     return _finish(layout, data, row_bounds, spread, (pr.Ex, ex), x_init, result, v)
 
 
