@@ -1318,7 +1318,7 @@ def solve_prepared(
 
     # Products with this copy's vector on the left (``w @ GT`` for ``GT^T w``): under vmap the batch then stays the
     # leading axis of the result, where ``GT @ xi`` gives (k, copies) and every use after it reads across the batch
-    # (in the ADMM's loop that transposed read cost four times the product).
+    # (in the ADMM's loop that transposed read cost about four times the product).
     GT_t = pr.GT.T
     if pr.fixed is None:
 
@@ -1347,7 +1347,7 @@ def solve_prepared(
         return pr.lam * xi + h + GTy, (pr.lam * xi, GTy, h)
 
     ops = _Operators(update, lambda t, factor: (factor, t), dual, lambda y: y @ pr.GT, lambda p: to_xi(p) @ pr.T.T)
-    if warm is not None:
+    if warm is not None and not (keep is None and isinstance(warm_steps, int) and warm_steps == 0):
         # Each held row's source in the warm start, moved warm_steps stages ahead (``shift``) in one gather. The
         # left-out rows' entries are never read (nor checked for being finite).
         R = layout.stage_rows
