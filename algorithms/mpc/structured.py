@@ -1350,9 +1350,7 @@ def solve_prepared(
     if warm is not None and not (keep is None and isinstance(warm_steps, int) and warm_steps == 0):
         # Each held row's source in the warm start, moved warm_steps stages ahead (``shift``) in one gather. The
         # left-out rows' entries are never read (nor checked for being finite).
-        R = layout.stage_rows
-        stage = jnp.minimum(jnp.arange(N) + warm_steps, N - 1)
-        source = kept((stage[:, None] * R + jnp.arange(R)).reshape(-1))
+        source = kept(_shifted_rows(layout, warm_steps))
         warm = Warm(jnp.asarray(warm.values)[source], jnp.asarray(warm.multipliers)[source], warm.rho)
     s0, y0, t0 = _start(data, warm, settings, pr.rho)  # a cold start: the prepared step size (rho_scale in it)
     if not settings.adaptive_rho:  # the prepared step size throughout (the folded products are for it)
@@ -1400,22 +1398,15 @@ def solve_prepared(
 def shift(layout: Layout, warm: Warm, steps=1) -> Warm:
     """The warm start for the QP ``steps`` (>= 0, may be traced) control steps later: every stage's rows and
     multipliers move ``steps`` stages ahead (the last stage repeated); ``rho`` is kept."""
+    source = _shifted_rows(layout, steps)
+    return Warm(jnp.asarray(warm.values)[source], jnp.asarray(warm.multipliers)[source], warm.rho)
+
+
+def _shifted_rows(layout: Layout, steps):
+    """(p,) the row of a warm start that each row reads ``steps`` stages later (``shift``)."""
     N, R = layout.horizon, layout.stage_rows
-    if isinstance(steps, int) and steps >= 0:
-        # A static count: slices (a gather's index would be a traced array, and under vmap XLA's CPU gather of
-        # whole stages transposes the batch).
-        def move(a):
-            a = jnp.asarray(a)
-            moved = a[min(steps, N - 1) * R :]
-            return jnp.concatenate([moved] + [a[(N - 1) * R :]] * (N - moved.shape[0] // R))
-
-        return Warm(move(warm.values), move(warm.multipliers), warm.rho)
-    index = jnp.minimum(jnp.arange(N) + steps, N - 1)
-
-    def move(a):
-        return a.reshape(N, R)[index].reshape(-1)
-
-    return Warm(move(warm.values), move(warm.multipliers), warm.rho)
+    stage = jnp.minimum(jnp.arange(N) + steps, N - 1)
+    return (stage[:, None] * R + jnp.arange(R)).reshape(-1)
 
 
 __all__ = [
