@@ -275,24 +275,26 @@ FIXED_STEP = {"admm_tol": 0.0, "admm_polish_rounds": 0, "admm_adaptive_rho": Fal
 
 
 @pytest.mark.parametrize(
-    "system, with_state, iterations, rho_scale",
-    [("cartpole", False, 25, 1.0), ("quadrotor_2d", False, 100, 10.0), ("cartpole", True, 200, 30.0)],
-    ids=["cartpole_25", "quadrotor_2d_100_x10", "cartpole_box_200_x30"],
+    "system, with_state, iterations, rho_scale, alpha",
+    [("cartpole", False, 25, 1.0, 1.6), ("quadrotor_2d", False, 100, 10.0, 1.6), ("cartpole", True, 160, 25.0, 1.9)],
+    ids=["cartpole_25", "quadrotor_2d_100_x10", "cartpole_box_160_x25_alpha_1.9"],
 )
 def test_the_fixed_step_throughput_settings_run_their_iterations_and_match_qpoases(
-    system, with_state, iterations, rho_scale
+    system, with_state, iterations, rho_scale, alpha
 ):
     # benchmarks/control.py's throughput settings: every copy runs exactly `iterations` iterations at the prepared
     # step size times `rho_scale`, whose products prepare folds once (structured.Prepared.fixed), with no polish.
     # Over the benchmark's 1,000 states they hold qpOASES's first input to 1.5e-6 N (cart-pole, input bounds),
-    # 7e-4 N (2D quadrotor, input bounds; the unscaled step size leaves 25 states beyond 1e-3 N) and 3.1e-4 N
-    # (cart-pole with its 0.3 m cart box); here 60 of those states, float32.
+    # 7e-4 N (2D quadrotor, input bounds; the unscaled step size leaves 25 states beyond 1e-3 N) and 7.7e-4 N
+    # (cart-pole with its 0.3 m cart box, over-relaxation 1.9; at 1.6 it needs 200 iterations, and at 1.9 with 150
+    # one state is 1.0e-3 N off); here 60 of those states, float32.
     env, params = cases.make_case_env(system, with_state=with_state)
     reference = Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
     case = cases.CASES[system]
     steps, states = cases.random_states(env, reference, case.offset, case.spread, 60)
     fast = {**FIXED_STEP, "admm_max_iter": iterations, "admm_check_every": iterations}
-    jax_mpc = make_linear_mpc(env, params, {"horizon": 20, **fast, "admm_rho_scale": rho_scale})
+    jax_mpc = make_linear_mpc(env, params, {"horizon": 20, **fast, "admm_rho_scale": rho_scale, "admm_alpha": alpha})
+    assert jax_mpc.info["structured"].settings.alpha == alpha
     prepared = jax_mpc.info["structured"].prepared
     unscaled = make_linear_mpc(env, params, {"horizon": 20, **fast}).info["structured"].prepared
     np.testing.assert_allclose(float(prepared.rho), rho_scale * float(np.min(prepared.lam)), rtol=1e-5)
@@ -485,6 +487,7 @@ def test_mpc_holds_an_input_bound_that_lqr_violates():
         ({"r_diag": [0.0]}, r"controllers\.linear_mpc\.r_diag: .*positive definite"),
         ({"solver_tol": 0.0}, r"controllers\.linear_mpc\.solver_tol: must be positive"),
         ({"admm_rho_scale": 0.0}, r"controllers\.linear_mpc\.admm_rho_scale: must be positive"),
+        ({"admm_alpha": 2.0}, r"controllers\.linear_mpc\.admm_alpha: must be in the open interval \(0, 2\), got 2\.0"),
         ({"soft_constraints": True, "slack_l1": 0, "slack_l2": 0}, r"controllers\.linear_mpc\.slack_l1: "),
         ({"solver": "ipm", "soft_constraints": True}, r"controllers\.linear_mpc\.soft_constraints: .*allowed.*admm"),
         ({"ipm_max_iter": 0}, r"controllers\.linear_mpc\.ipm_max_iter: must be a positive integer"),
