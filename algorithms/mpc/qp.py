@@ -197,9 +197,9 @@ def _condense_one(
     X[:, nv : nv + nx] = np.eye(nx)
     u_ref = np.zeros((nu, width))
     u_ref[:, one_col] = model.u_bar
-    cost = np.zeros((width, width))
     q_ref = np.zeros((nv, H * nx))
     G_rows, h_rows = [], []
+    states, weighted, inputs = [], [], []  # per stage: X, weight @ X, U - u_ref, each (n, width)
     U0 = None
     for j in range(H):
         i = points[j]
@@ -211,9 +211,9 @@ def _condense_one(
         if j == 0:
             U0 = U
         weight = model.P[points[H]] if j == H - 1 else Q
-        cost += X.T @ weight @ X
-        du = U - u_ref
-        cost += du.T @ R @ du
+        states.append(X)
+        weighted.append(weight @ X)
+        inputs.append(U - u_ref)
         q_ref[:, j * nx : (j + 1) * nx] = -X[:, :nv].T @ weight
         if rows.num_rows:
             M = rows.Ax @ X + rows.Au @ U
@@ -221,6 +221,11 @@ def _condense_one(
             h_theta = -M[:, nv:]
             h_theta[:, -1] += rows.b
             h_rows.append(h_theta)
+    # sum_j X_j^T W_j X_j + dU_j^T R dU_j as two products of the stacked stages: one (width x width) pass each, where
+    # a sum over the stages made 2 H of them (the 3D quadrotor's MPSC QP, 125 stages 2,513 wide: 3.1-3.4 s, now
+    # 0.5-0.6 s, the same matrices to 2e-15 relative).
+    du = np.concatenate(inputs)
+    cost = np.concatenate(states).T @ np.concatenate(weighted) + du.T @ np.concatenate([R @ d for d in inputs])
     cost = 0.5 * (cost + cost.T)
     hess = cost[:nv, :nv]
     q_map = np.concatenate([cost[:nv, nv:], q_ref], axis=1)
