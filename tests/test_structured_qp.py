@@ -540,6 +540,24 @@ def test_a_held_solve_ignores_the_right_hand_side_of_free_rows_even_infinite_one
         np.testing.assert_allclose(np.asarray(solve(S_k, held, rhs)), [0.5, 0.0, 0.5], rtol=1e-6)
 
 
+def test_first_extreme_is_numpys_argmax_and_argmin_with_ties_infinities_and_booleans():
+    # Worked by hand: the largest of (1, 3, -inf, 3) is 3, first at 1; the smallest -inf, at 2; of booleans
+    # (True, True, False, False) the smallest is False, first at 2; all -inf: 0; all NaN: 0 (argmax would say 0).
+    v = jnp.array([1.0, 3.0, -jnp.inf, 3.0])
+    assert int(S._first_extreme(v, largest=True)) == 1 and int(S._first_extreme(v, largest=False)) == 2
+    assert int(S._first_extreme(jnp.array([True, True, False, False]), largest=False)) == 2
+    assert int(S._first_extreme(jnp.full(3, -jnp.inf), largest=True)) == 0
+    assert int(S._first_extreme(jnp.full(3, jnp.nan), largest=True)) == 0
+    # Against numpy on random rows with many ties and infinities, batched as the dual active-set steps run it.
+    rng = np.random.default_rng(0)
+    values = rng.integers(-3, 3, (256, 40)).astype(np.float32)
+    values[rng.random(values.shape) < 0.2] = -np.inf
+    values[rng.random(values.shape) < 0.05] = np.inf
+    for largest, oracle in ((True, np.argmax), (False, np.argmin)):
+        picked = jax.jit(jax.vmap(lambda v, largest=largest: S._first_extreme(v, largest)))(jnp.asarray(values))
+        np.testing.assert_array_equal(np.asarray(picked), oracle(values, axis=1))
+
+
 def test_rows_first_orders_by_priority_then_index_like_a_stable_sort():
     # Worked by hand: priorities (1, 0, 2, 0, 1) -> the 0s (rows 1, 3), the 1s (0, 4), the 2 (2); the first 4.
     priority = jnp.array([1, 0, 2, 0, 1])
