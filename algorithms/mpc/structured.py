@@ -700,7 +700,8 @@ def _first_extreme(values, largest: bool):
 
     Two plain reductions, not XLA's (value, index) pair reduction: under ``vmap`` on a CPU that one runs about one
     entry per clock over the batch (2.4 ms for the 4,096 copies' 240 rows of the 2D quadrotor's position box, once per
-    dual active-set step: 8% of a batch that runs 30), where a max and a min each vectorise.
+    dual active-set step: the largest single operation of a batch that runs 30), where a max and a min each
+    vectorise.
     """
     extreme = jnp.max(values) if largest else jnp.min(values)
     p = values.shape[0]
