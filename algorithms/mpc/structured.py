@@ -1365,8 +1365,7 @@ def solve_prepared(
     if warm is not None and not (keep is None and isinstance(warm_steps, int) and warm_steps == 0):
         # Each held row's source in the warm start, moved warm_steps stages ahead (``shift``) in one gather. The
         # left-out rows' entries are never read (nor checked for being finite).
-        source = kept(_shifted_rows(layout, warm_steps))
-        warm = Warm(jnp.asarray(warm.values)[source], jnp.asarray(warm.multipliers)[source], warm.rho)
+        warm = _read_rows(warm, kept(_shifted_rows(layout, warm_steps)))
     s0, y0, t0 = _start(data, warm, settings, pr.rho)  # a cold start: the prepared step size (rho_scale in it)
     if not settings.adaptive_rho:  # the prepared step size throughout (the folded products are for it)
         t0 = pr.rho
@@ -1413,7 +1412,11 @@ def solve_prepared(
 def shift(layout: Layout, warm: Warm, steps=1) -> Warm:
     """The warm start for the QP ``steps`` (>= 0, may be traced) control steps later: every stage's rows and
     multipliers move ``steps`` stages ahead (the last stage repeated); ``rho`` is kept."""
-    source = _shifted_rows(layout, steps)
+    return _read_rows(warm, _shifted_rows(layout, steps))
+
+
+def _read_rows(warm: Warm, source) -> Warm:
+    """The warm start whose row ``i`` is ``warm``'s row ``source[i]``; ``rho`` is kept."""
     return Warm(jnp.asarray(warm.values)[source], jnp.asarray(warm.multipliers)[source], warm.rho)
 
 
