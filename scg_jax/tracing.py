@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+from jax import lax
 
 
 def batched_like(tree, anchor):
@@ -35,4 +36,60 @@ def batched_like(tree, anchor):
     return jax.tree.map(lambda leaf: jnp.where(keep, leaf, leaf), tree)
 
 
-__all__ = ["batched_like"]
+def where_needed(fn, need, args, otherwise, chunk: int):
+    """``fn(*args)`` where ``need``, else ``otherwise`` (one copy); under ``jax.vmap``, ``fn`` runs only for the copies
+    that need it, ``chunk`` of them at a time.
+
+    Under ``vmap`` a ``lax.cond`` computes both branches for every copy, and a loop in ``fn`` runs until the batch's
+    slowest copy is done. Here the batch rule gathers the copies that need ``fn`` (in their order) into chunks of
+    ``chunk`` copies, runs ``fn`` vmapped on each chunk in turn (a while loop over ``ceil(count / chunk)`` chunks; a
+    chunk's loops wait only for its own copies) and writes their results into ``otherwise``: the cost follows the
+    number of copies that need ``fn``, not the batch. Nested ``vmap``s work (the outer ones batch the rule's
+    operations). Differentiation is not supported.
+
+    Args:
+        fn: a pure function of ``args``; it closes over no batched value (pass those in ``args``).
+        need: a bool scalar (one copy).
+        args: a tuple of ``fn``'s arguments (pytrees of arrays).
+        otherwise: the result where ``need`` is false: a pytree of arrays shaped and typed as ``fn``'s result.
+        chunk: copies per chunk (a static int >= 1).
+    """
+    if chunk < 1:
+        raise ValueError(f"chunk: must be at least 1, got {chunk!r}")
+
+    @jax.custom_batching.custom_vmap
+    def call(need, args, otherwise):
+        return lax.cond(need, lambda: fn(*args), lambda: otherwise)
+
+    @call.def_vmap
+    def rule(axis_size, in_batched, need, args, otherwise):
+        need_batched, args_batched, otherwise_batched = in_batched
+        if not need_batched:
+            need = jnp.broadcast_to(need, (axis_size,))
+        otherwise = jax.tree.map(
+            lambda a, b: a if b else jnp.broadcast_to(a, (axis_size, *jnp.shape(a))), otherwise, otherwise_batched
+        )
+        width = min(chunk, axis_size)
+        count = jnp.sum(need.astype(jnp.int32))
+        order = jnp.argsort(~need, stable=True)  # the copies that need fn first, in their order
+        in_axes = jax.tree.map(lambda b: 0 if b else None, args_batched)
+
+        def run(carry):
+            start, out = carry
+            lanes = start + jnp.arange(width)
+            # A lane past the count repeats the last copy that needs fn (no loop in fn runs longer for it) and writes
+            # nothing (its index is out of range, dropped).
+            index = order[jnp.minimum(lanes, count - 1)]
+            lane_args = jax.tree.map(lambda a, b: a[index] if b else a, args, args_batched)
+            result = jax.vmap(lambda a: fn(*a), in_axes=(in_axes,))(lane_args)
+            target = jnp.where(lanes < count, index, axis_size)
+            out = jax.tree.map(lambda o, r: o.at[target].set(r, mode="drop"), out, result)
+            return start + width, out
+
+        _, out = lax.while_loop(lambda carry: carry[0] < count, run, (jnp.zeros((), jnp.int32), otherwise))
+        return out, jax.tree.map(lambda _: True, out)
+
+    return call(need, tuple(args), otherwise)
+
+
+__all__ = ["batched_like", "where_needed"]

@@ -475,7 +475,7 @@ def _brute_force_qp(H, g, G, lo, hi):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3, 23, 31])
-def test_the_dual_active_set_method_finds_the_brute_force_minimiser_from_any_start(seed):
+def test_the_dual_active_set_method_finds_the_brute_force_minimiser_from_any_start(seed, monkeypatch):
     # Goldfarb and Idnani's method (the polish's fallback) on random strictly convex QPs with 4 variables and 7 rows
     # (a box on each variable and 3 general rows), pushed against their bounds; more rows than variables, so the set
     # is gathered. Its start is the empty set, a set with wrong-signed rows to drop, or more rows than it can hold.
@@ -491,26 +491,15 @@ def test_the_dual_active_set_method_finds_the_brute_force_minimiser_from_any_sta
     v_expected, y_expected = _brute_force_qp(H, g, G, lo, hi)
     with jax.enable_x64(True):
         inv_G, inv_g = (jnp.asarray(a) for a in (np.linalg.solve(H, G.T), np.linalg.solve(H, g)))
-        G_ = jnp.asarray(G)
-
-        def free(y):
-            v = -(inv_G @ y + inv_g)
-            return v, G_ @ v
-
-        def correct(v, index, lam):
-            v = v - inv_G[:, index] @ lam
-            return v, G_ @ v
-
-        def column(index, j):
-            return G_[index] @ inv_G[:, j], G_[j] @ inv_G[:, j]
-
-        ops = S._PolishOps(free, lambda index: G_[index] @ inv_G[:, index], correct, column)
+        ops_data = (jnp.asarray(G), inv_G, inv_g)
+        free = S._solve_polish_ops(ops_data).free
         primal_free, s_free = free(jnp.zeros(p))
         starts = {"empty": np.zeros(p), "wrong signs": -np.sign(y_expected), "too many": np.ones(p)}
         for name, start_side in starts.items():
             solve = jax.jit(
                 lambda start: S._dual_active_set(
-                    ops,
+                    S._solve_polish_ops,
+                    ops_data,
                     jnp.ones(p, bool),
                     jnp.asarray(lo),
                     jnp.asarray(hi),
@@ -528,6 +517,21 @@ def test_the_dual_active_set_method_finds_the_brute_force_minimiser_from_any_sta
             np.testing.assert_allclose(y, y_expected, atol=1e-9, err_msg=name)
             np.testing.assert_allclose(rows, G @ v_expected, atol=1e-10, err_msg=name)
             np.testing.assert_allclose(H @ v + g + G.T @ y, 0.0, atol=1e-9, err_msg=name)
+        # Vmapped over the starts and a copy that skips it (its result: the minimiser without rows, no forces), in
+        # chunks of 2 copies: the three starts' copies run in two chunks and give the minimiser.
+        monkeypatch.setattr(S, "DUAL_ACTIVE_SET_CHUNK", 2)
+        sides = jnp.asarray([*starts.values(), np.ones(p)], jnp.int32)
+        skips = jnp.asarray([False, False, False, True])
+        method = lambda side, skip: S._dual_active_set(  # noqa: E731
+            S._solve_polish_ops, ops_data, jnp.ones(p, bool), jnp.asarray(lo), jnp.asarray(hi), primal_free, s_free,
+            side, k=n, max_steps=30, tol=1e-12, skip=skip,
+        )  # fmt: skip
+        v, rows, y = (np.asarray(a) for a in jax.jit(jax.vmap(method))(sides, skips))
+        np.testing.assert_allclose(v[:3], np.tile(v_expected, (3, 1)), atol=1e-10)
+        np.testing.assert_allclose(y[:3], np.tile(y_expected, (3, 1)), atol=1e-9)
+        np.testing.assert_array_equal(v[3], np.asarray(primal_free))
+        np.testing.assert_array_equal(rows[3], np.asarray(s_free))
+        np.testing.assert_array_equal(y[3], 0.0)
 
 
 def test_a_held_solve_ignores_the_right_hand_side_of_free_rows_even_infinite_ones():

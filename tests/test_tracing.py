@@ -1,4 +1,5 @@
-"""``scg_jax.tracing.batched_like``: values unchanged, and a vmapped loop whose carry it prepares is batched once."""
+"""``scg_jax.tracing``: ``batched_like`` leaves values unchanged and a vmapped loop whose carry it prepares is batched
+once; ``where_needed`` gives ``fn`` where needed and ``otherwise`` elsewhere, copy by copy, under any vmap."""
 
 import jax
 import jax.numpy as jnp
@@ -6,7 +7,7 @@ import numpy as np
 import pytest
 from jax import lax
 
-from scg_jax.tracing import batched_like
+from scg_jax.tracing import batched_like, where_needed
 
 
 def _tree():
@@ -79,3 +80,65 @@ def test_a_vmapped_loop_whose_carry_it_prepares_is_batched_once(nested):
         counts.append(len(calls))
     assert counts[0] >= 2 and counts[1] == 1, counts
     jax.tree.map(np.testing.assert_array_equal, results[0], results[1])
+
+
+def _halvings(x, a):
+    # A loop whose length depends on the copy: x halvings towards a, floor(x) of them (x = 7: 7 passes).
+    def body(carry):
+        i, v = carry
+        return i + 1, 0.5 * v + a
+
+    return lax.while_loop(lambda carry: carry[0] < x.astype(jnp.int32), body, (jnp.int32(0), x))[1]
+
+
+def _expected_halvings(x, a):
+    v = x
+    for _ in range(int(x)):
+        v = 0.5 * v + a
+    return v
+
+
+def test_where_needed_gives_fn_where_needed_and_otherwise_elsewhere_in_chunks_and_nested():
+    # Worked numbers: x = 3 with a = 1 halves 3 times: 3 -> 2.5 -> 2.25 -> 2.125. The copies with x > 2 need fn;
+    # chunks of 3 split the 7 that need it as 3 + 3 + 1 (the last chunk's two spare lanes write nothing).
+    def one(x, a):
+        return where_needed(_halvings, x > 2.0, (x, a), -x, chunk=3)
+
+    xs = jnp.arange(10.0)
+    out = np.asarray(jax.jit(jax.vmap(one, in_axes=(0, None)))(xs, 1.0))
+    expected = [_expected_halvings(x, 1.0) if x > 2 else -x for x in range(10)]
+    np.testing.assert_allclose(out, expected, rtol=1e-6)
+    assert out[3] == pytest.approx(2.125)
+    # One copy, no vmap (a cond); no copy needs it; every copy does.
+    assert float(jax.jit(one)(jnp.float32(3.0), 1.0)) == pytest.approx(2.125)
+    assert float(jax.jit(one)(jnp.float32(1.0), 1.0)) == -1.0
+    np.testing.assert_array_equal(np.asarray(jax.vmap(one, in_axes=(0, None))(xs[:3], 1.0)), -np.arange(3.0))
+    np.testing.assert_allclose(np.asarray(jax.vmap(one, in_axes=(0, None))(xs[3:], 1.0)), expected[3:], rtol=1e-6)
+    # Nested: an outer vmap over a (batched) and the reversed order.
+    nested = jax.jit(jax.vmap(jax.vmap(one, in_axes=(0, None)), in_axes=(0, 0)))
+    out = np.asarray(nested(jnp.stack([xs, xs[::-1]]), jnp.array([1.0, 2.0])))
+    for row, (order, a) in enumerate(((range(10), 1.0), (range(9, -1, -1), 2.0))):
+        np.testing.assert_allclose(out[row], [_expected_halvings(x, a) if x > 2 else -x for x in order], rtol=1e-6)
+
+
+def test_where_needed_runs_fn_only_for_the_copies_that_need_it():
+    # Each pass of fn's loop reports itself. The copies x = 1, 4, 2 need 1 + 4 + 2 = 7 passes; under vmap a plain
+    # cond would run the loop for all 5 copies until the slowest is done (20 passes). Chunks of 1 copy: 7.
+    passes = []
+
+    def counted(x):
+        def body(carry):
+            i, v = carry
+            jax.debug.callback(lambda i: passes.append(int(i)), i)
+            return i + 1, 0.5 * v
+
+        return lax.while_loop(lambda carry: carry[0] < x.astype(jnp.int32), body, (jnp.int32(0), x))[1]
+
+    def one(x):
+        return where_needed(counted, x > 0.0, (x,), jnp.float32(-1.0), chunk=1)
+
+    xs = jnp.array([0.0, 1.0, 4.0, 0.0, 2.0])
+    np.testing.assert_allclose(np.asarray(jax.jit(jax.vmap(one))(xs)), [-1.0, 0.5, 0.25, -1.0, 0.5], rtol=1e-6)
+    assert sorted(passes) == [0, 0, 0, 1, 1, 2, 3]
+    with pytest.raises(ValueError, match="chunk: must be at least 1, got 0"):
+        where_needed(_halvings, True, (jnp.float32(1.0), 1.0), jnp.float32(0.0), chunk=0)

@@ -87,7 +87,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from scg_jax.tracing import batched_like
+from scg_jax.tracing import batched_like, where_needed
 
 CONVERGED = 0
 MAX_ITERATIONS = 1
@@ -105,6 +105,9 @@ POLISH_TOL = 1e-5
 POLISH_DUAL_TOL = 2e-6
 # Solves that drop the wrong-signed rows from the ADMM's set before the dual active-set method starts there.
 RESTORE_ROUNDS = 3
+# Copies per chunk of the dual active-set method under vmap: it runs only for the copies that need it, this many at a
+# time (``scg_jax.tracing.where_needed``).
+DUAL_ACTIVE_SET_CHUNK = 256
 
 
 # --------------------------------------------------------------------------------------------- problem
@@ -672,6 +675,52 @@ class _PolishOps(NamedTuple):
     column: Any
 
 
+def _solve_polish_ops(arrays) -> _PolishOps:
+    """``solve``'s polish operators from its arrays ``(Gs, inv_G, inv_g)``: the scaled rows (p, n), ``H^-1 Gs^T`` (n, p)
+    and ``H^-1 g`` (n,)."""
+    Gs, inv_G, inv_g = arrays
+
+    def free(y):
+        v = -(inv_G @ y + inv_g)
+        return v, Gs @ v
+
+    def schur(index):
+        return Gs[index] @ inv_G[:, index]
+
+    def correct(v, index, lam):
+        v = v - inv_G[:, index] @ lam
+        return v, Gs @ v
+
+    def column(index, j):
+        return Gs[index] @ inv_G[:, j], Gs[j] @ inv_G[:, j]
+
+    return _PolishOps(free, schur, correct, column)
+
+
+def _prepared_polish_ops(arrays) -> _PolishOps:
+    """``solve_prepared``'s polish operators in the coordinates ``xi`` (``T^T H T = diag(lam)``) from its arrays
+    ``(GT, GT_t, lam, h)``: the rows (p, n) and their transpose (n, p), ``lam`` (n,) and the copy's ``T^T g`` (n,)."""
+    GT, GT_t, lam_xi, h = arrays
+
+    def free(y):
+        xi = -(h + y @ GT) / lam_xi
+        return xi, xi @ GT_t
+
+    def schur(index):
+        rows = GT[index]
+        return (rows / lam_xi) @ rows.T
+
+    def correct(xi, index, lam):
+        xi = xi - (lam @ GT[index]) / lam_xi
+        return xi, xi @ GT_t
+
+    def column(index, j):
+        row = GT[j] / lam_xi
+        return GT[index] @ row, GT[j] @ row
+
+    return _PolishOps(free, schur, correct, column)
+
+
 def _rows_first(priority, k: int, levels: int = 2):
     """The indices of the rows ordered by ``priority`` ((p,) integers in ``[0, levels)``: 0 first, then 1, ...; ties
     by index), the first ``k``.
@@ -729,7 +778,9 @@ def _forces_at_bounds(ops: _PolishOps, side, lo, hi, s_free, k: int):
     return index, lam
 
 
-def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, settings: Settings, keep=None) -> _Result:
+def _polish(
+    layout: Layout, make_ops, ops_data, data: _Scaled, result: _Result, settings: Settings, keep=None
+) -> _Result:
     """Refine the ADMM's plan by a primal-dual active-set method on the hard rows (OSQP's polish, iterated).
 
     The soft rows keep the ADMM's multipliers as fixed forces (with ``Settings.polish_soft_rows``, they take part
@@ -744,6 +795,7 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
     converges in one or two rounds where the ADMM needs thousands of iterations (degenerate active sets along a
     state bound).
     """
+    ops = make_ops(ops_data)
     n, p = layout.num_decisions, data.lo.shape[0]  # p: the rows data holds (keep: the kept rows)
     dtype = result.s.dtype
     soft = jnp.asarray(_soft_mask(layout, keep)) > 0
@@ -804,7 +856,7 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
         upper, lower = active_sets(result.s, result.y)
         start_side = jnp.where(upper, 1, jnp.where(lower, -1, 0))
         fallback = _dual_active_set(
-            ops, hard, lo, hi, primal_free, s_free, start_side, k, settings.dual_active_set_steps, tol,
+            make_ops, ops_data, hard, lo, hi, primal_free, s_free, start_side, k, settings.dual_active_set_steps, tol,
             skip=ok | (result.status != MAX_ITERATIONS),  # converged, or certified infeasible: nothing to find
         )  # fmt: skip
         good = ~ok & acceptable(*fallback)
@@ -825,7 +877,9 @@ def _polish(layout: Layout, ops: _PolishOps, data: _Scaled, result: _Result, set
     )
 
 
-def _dual_active_set(ops: _PolishOps, hard, lo, hi, primal_free, s_free, start_side, k: int, max_steps: int, tol, skip):
+def _dual_active_set(
+    make_ops, ops_data, hard, lo, hi, primal_free, s_free, start_side, k: int, max_steps: int, tol, skip
+):
     """Goldfarb and Idnani's dual active-set method on the rows ``hard`` (one copy): ``(primal, s, y)``.
 
     The polish's fallback where its rounds found no acceptable plan after an ADMM that stopped at its cap: far from
@@ -854,95 +908,99 @@ def _dual_active_set(ops: _PolishOps, hard, lo, hi, primal_free, s_free, start_s
     """
     p = s_free.shape[0]
     dtype = s_free.dtype
-    rows = jnp.arange(p)
-    # A row whose Schur complement on the set is below this share of its diagonal depends on the set: in float32
-    # its force would be round-off.
-    dependent = float(np.sqrt(np.finfo(dtype).eps))
 
-    slot = jnp.arange(k)
+    def method(ops_data, hard, lo, hi, primal_free, s_free, start_side):
+        ops = make_ops(ops_data)
+        rows = jnp.arange(p)
+        # A row whose Schur complement on the set is below this share of its diagonal depends on the set: in float32
+        # its force would be round-off.
+        dependent = float(np.sqrt(np.finfo(dtype).eps))
 
-    def step(carry):
-        side, lam, j, sigma, _, _, steps, (_, s), (slots, valid, W) = carry
-        # W: the inverse of the held rows' Schur matrix, kept in the slots ``valid`` (identity on the others).
-        # d: the held multipliers' change per unit of j's force, which keeps the held rows at their bounds.
-        column, S_jj = ops.column(slots, j)
-        column = jnp.where(valid, column, 0.0)
-        w = W @ column
-        d = -sigma * w
-        # c: how far j moves towards its bound per unit of force (its Schur complement on the set).
-        c = S_jj - column @ w
-        excess = sigma * (s[j] - jnp.where(sigma > 0, hi[j], lo[j]))  # j's violation (its bound is finite)
-        full = jnp.where(c > dependent * S_jj, jnp.maximum(excess, 0.0) / c, jnp.inf)
-        lam_slots = jnp.where(valid, lam[slots], 0.0)
-        releasing = valid & (lam_slots * d < 0)
-        partial_at = jnp.where(releasing, -lam_slots / jnp.where(releasing, d, 1.0), jnp.inf)
-        partial = jnp.min(partial_at)
-        t = jnp.minimum(full, partial)
-        stuck = ~jnp.isfinite(t) | jnp.all(valid)  # j cannot be met
-        t = jnp.where(stuck, 0.0, t)
-        lam = lam.at[slots].add(jnp.where(valid, t * d, 0.0)).at[j].add(t * sigma)
-        joins = ~stuck & (full <= partial)
-        leaves = ~stuck & ~joins
-        out = _first_extreme(partial_at, largest=False)  # the slot of the row that leaves
-        leaving = slots[out]
-        lam = jnp.where(leaves & (rows == leaving), 0.0, lam)
-        side = jnp.where(leaves & (rows == leaving), 0, side)
-        side = jnp.where(joins & (rows == j), sigma.astype(side.dtype), side)
-        # The inverse follows the set in O(k^2), where a new factor costs O(k^3) and its Schur matrix O(k^2 n): j
-        # joins in a free slot (the bordered inverse), or the leaving row's slot is freed (the inverse of the rest).
-        # Both are a rank-one change of the other slots' block and a new row and column at one slot g, written in one
-        # pass over W: joining, W + w w^T / c, and j's border (-w / c, 1 / c) at the free slot; leaving,
-        # W - W e_o e_o^T W / W_oo, and the identity's row and column at the slot o (set exactly, not left to
-        # rounding, since a later join reads that slot as padding).
-        free_slot = _first_extreme(valid, largest=False)
-        g = jnp.where(joins, free_slot, out)
-        at_g = (slot == g) & (joins | leaves)
-        c_safe = jnp.where(joins, c, 1.0)
-        z = jnp.where(joins, w, W[:, out])
-        alpha = jnp.where(joins, 1.0 / c_safe, jnp.where(leaves, -1.0 / W[out, out], 0.0))
-        border = jnp.where(slot == g, 1.0, jnp.where(valid, -w, 0.0)) / c_safe
-        edge = jnp.where(joins, border, (slot == g).astype(dtype))
-        W = jnp.where(
-            at_g[:, None], edge[None, :], jnp.where(at_g[None, :], edge[:, None], W + alpha * z[:, None] * z[None, :])
-        )
-        slots = jnp.where(joins & (slot == free_slot), j, slots).astype(slots.dtype)
-        valid = jnp.where(joins & (slot == free_slot), True, jnp.where(leaves & (slot == out), False, valid))
-        # The rows with a force now: the set and j (whose force stays while a row left; after it joined, its force
-        # is in the set's).
-        index = jnp.concatenate([slots, j[None]])
-        force = jnp.where(jnp.concatenate([valid, ~joins[None]]), lam[index], 0.0)
-        plan = ops.correct(primal_free, index, force)
-        return (*pick(side, lam, jnp.where(joins, -1, j), sigma, stuck, steps + 1, *plan), (slots, valid, W))
+        slot = jnp.arange(k)
 
-    def solution(side, lam):
-        held = (side != 0) | (lam != 0)
-        index = rows if k == p else _rows_first(jnp.where(held, 0, 1), k)
-        return ops.correct(primal_free, index, lam[index])
+        def step(carry):
+            side, lam, j, sigma, _, _, steps, (_, s), (slots, valid, W) = carry
+            # W: the inverse of the held rows' Schur matrix, kept in the slots ``valid`` (identity on the others).
+            # d: the held multipliers' change per unit of j's force, which keeps the held rows at their bounds.
+            column, S_jj = ops.column(slots, j)
+            column = jnp.where(valid, column, 0.0)
+            w = W @ column
+            d = -sigma * w
+            # c: how far j moves towards its bound per unit of force (its Schur complement on the set).
+            c = S_jj - column @ w
+            excess = sigma * (s[j] - jnp.where(sigma > 0, hi[j], lo[j]))  # j's violation (its bound is finite)
+            full = jnp.where(c > dependent * S_jj, jnp.maximum(excess, 0.0) / c, jnp.inf)
+            lam_slots = jnp.where(valid, lam[slots], 0.0)
+            releasing = valid & (lam_slots * d < 0)
+            partial_at = jnp.where(releasing, -lam_slots / jnp.where(releasing, d, 1.0), jnp.inf)
+            partial = jnp.min(partial_at)
+            t = jnp.minimum(full, partial)
+            stuck = ~jnp.isfinite(t) | jnp.all(valid)  # j cannot be met
+            t = jnp.where(stuck, 0.0, t)
+            lam = lam.at[slots].add(jnp.where(valid, t * d, 0.0)).at[j].add(t * sigma)
+            joins = ~stuck & (full <= partial)
+            leaves = ~stuck & ~joins
+            out = _first_extreme(partial_at, largest=False)  # the slot of the row that leaves
+            leaving = slots[out]
+            lam = jnp.where(leaves & (rows == leaving), 0.0, lam)
+            side = jnp.where(leaves & (rows == leaving), 0, side)
+            side = jnp.where(joins & (rows == j), sigma.astype(side.dtype), side)
+            # The inverse follows the set in O(k^2), where a new factor costs O(k^3) and its Schur matrix O(k^2 n):
+            # j joins in a free slot (the bordered inverse), or the leaving row's slot is freed (the inverse of the
+            # rest). Both are a rank-one change of the other slots' block and a new row and column at one slot g,
+            # written in one pass over W: joining, W + w w^T / c, and j's border (-w / c, 1 / c) at the free slot;
+            # leaving, W - W e_o e_o^T W / W_oo, and the identity's row and column at the slot o (set exactly, not
+            # left to rounding, since a later join reads that slot as padding).
+            free_slot = _first_extreme(valid, largest=False)
+            g = jnp.where(joins, free_slot, out)
+            at_g = (slot == g) & (joins | leaves)
+            c_safe = jnp.where(joins, c, 1.0)
+            z = jnp.where(joins, w, W[:, out])
+            alpha = jnp.where(joins, 1.0 / c_safe, jnp.where(leaves, -1.0 / W[out, out], 0.0))
+            border = jnp.where(slot == g, 1.0, jnp.where(valid, -w, 0.0)) / c_safe
+            edge = jnp.where(joins, border, (slot == g).astype(dtype))
+            W = jnp.where(
+                at_g[:, None],
+                edge[None, :],
+                jnp.where(at_g[None, :], edge[:, None], W + alpha * z[:, None] * z[None, :]),
+            )
+            slots = jnp.where(joins & (slot == free_slot), j, slots).astype(slots.dtype)
+            valid = jnp.where(joins & (slot == free_slot), True, jnp.where(leaves & (slot == out), False, valid))
+            # The rows with a force now: the set and j (whose force stays while a row left; after it joined, its force
+            # is in the set's).
+            index = jnp.concatenate([slots, j[None]])
+            force = jnp.where(jnp.concatenate([valid, ~joins[None]]), lam[index], 0.0)
+            plan = ops.correct(primal_free, index, force)
+            return (*pick(side, lam, jnp.where(joins, -1, j), sigma, stuck, steps + 1, *plan), (slots, valid, W))
 
-    def pick(side, lam, j, sigma, stuck, steps, primal, s):
-        above, below = s - hi, lo - s
-        violation = jnp.where(hard & (side == 0), jnp.maximum(above, below), -jnp.inf)
-        worst = _first_extreme(violation, largest=True)
-        new_j = jnp.where(j >= 0, j, worst)
-        new_sigma = jnp.where(j >= 0, sigma, jnp.where(above[worst] >= below[worst], 1.0, -1.0).astype(dtype))
-        met = (j < 0) & (violation[worst] <= 0.5 * tol)
-        return side, lam, new_j, new_sigma, met, stuck, steps, (primal, s)
+        def solution(side, lam):
+            held = (side != 0) | (lam != 0)
+            index = rows if k == p else _rows_first(jnp.where(held, 0, 1), k)
+            return ops.correct(primal_free, index, lam[index])
 
-    def restore(carry):
-        side, _, rounds, _ = carry
-        # The multipliers (p,) that hold the rows of side at their bounds (the polish's round).
-        index, lam_index = _forces_at_bounds(ops, side, lo, hi, s_free, k)
-        lam = jnp.zeros(p, dtype).at[index].set(lam_index)
-        wrong = (side != 0) & (lam * side < 0)
-        return jnp.where(wrong, 0, side), jnp.where(wrong, 0.0, lam), rounds + 1, jnp.any(wrong)
+        def pick(side, lam, j, sigma, stuck, steps, primal, s):
+            above, below = s - hi, lo - s
+            violation = jnp.where(hard & (side == 0), jnp.maximum(above, below), -jnp.inf)
+            worst = _first_extreme(violation, largest=True)
+            new_j = jnp.where(j >= 0, j, worst)
+            new_sigma = jnp.where(j >= 0, sigma, jnp.where(above[worst] >= below[worst], 1.0, -1.0).astype(dtype))
+            met = (j < 0) & (violation[worst] <= 0.5 * tol)
+            return side, lam, new_j, new_sigma, met, stuck, steps, (primal, s)
 
-    def run():
+        def restore(carry):
+            side, _, rounds, _ = carry
+            # The multipliers (p,) that hold the rows of side at their bounds (the polish's round).
+            index, lam_index = _forces_at_bounds(ops, side, lo, hi, s_free, k)
+            lam = jnp.zeros(p, dtype).at[index].set(lam_index)
+            wrong = (side != 0) & (lam * side < 0)
+            return jnp.where(wrong, 0, side), jnp.where(wrong, 0.0, lam), rounds + 1, jnp.any(wrong)
+
         # The start: the ADMM's set, less the rows whose multipliers have the wrong sign (a few solves); the empty
         # set (the minimiser without rows) if that does not settle.
         zero = jnp.zeros((), jnp.int32)
         side = jnp.where(jnp.sum(start_side != 0) <= k, start_side, 0).astype(jnp.int32)
         side, lam, _, unsettled = lax.while_loop(
-            lambda c: ~skip & c[3] & (c[2] < RESTORE_ROUNDS),
+            lambda c: c[3] & (c[2] < RESTORE_ROUNDS),
             restore,
             batched_like((side, jnp.zeros(p, dtype), zero, jnp.any(side != 0)), s_free),
         )
@@ -950,7 +1008,7 @@ def _dual_active_set(ops: _PolishOps, hard, lo, hi, primal_free, s_free, start_s
         side, lam = jnp.where(cold, 0, side), jnp.where(cold, 0.0, lam)
         start = pick(side, lam, -1 + zero, jnp.ones((), dtype), jnp.zeros((), bool), zero, *solution(side, lam))
         carry = batched_like(start, s_free)
-        need = ~skip & ~carry[4]  # not yet met (a start is never stuck, and max_steps >= 1 here)
+        need = ~carry[4]  # not yet met (a start is never stuck, and max_steps >= 1 here)
 
         def incremental(carry):
             side = carry[0]
@@ -977,14 +1035,11 @@ def _dual_active_set(ops: _PolishOps, hard, lo, hi, primal_free, s_free, start_s
         side, lam, _, _, _, _, _, (primal, s) = carry
         return primal, s, lam
 
-    # One pass at most, not lax.cond: under vmap a cond computes both branches for every copy, this loop's body runs
-    # only when some copy of the batch needs the method (the rest keep the minimiser without rows, unused).
-    _, out = lax.while_loop(
-        lambda c: c[0],
-        lambda c: (jnp.zeros((), bool), run()),
-        batched_like((~skip, (primal_free, s_free, jnp.zeros(p, dtype))), s_free),
-    )
-    return out
+    # Only for the copies that need it: under vmap, gathered into chunks (where_needed), so that neither the start's
+    # solves nor the steps run for the copies whose polish was accepted.
+    otherwise = (primal_free, s_free, jnp.zeros(p, dtype))
+    args = (ops_data, hard, lo, hi, primal_free, s_free, start_side)
+    return where_needed(method, ~skip, args, otherwise, DUAL_ACTIVE_SET_CHUNK)
 
 
 def _start(data: _Scaled, warm: Warm | None, settings: Settings, rho0):
@@ -1124,21 +1179,7 @@ def solve(layout: Layout, qp: HorizonQP, x_init, warm: Warm | None = None, setti
 
         inv_G, inv_g = inv_GT[:, :-1], inv_GT[:, -1]
 
-        def free(y):
-            v = -(inv_G @ y + inv_g)
-            return v, Gs @ v
-
-        def schur(index):
-            return Gs[index] @ inv_G[:, index]
-
-        def correct(v, index, lam):
-            v = v - inv_G[:, index] @ lam
-            return v, Gs @ v
-
-        def column(index, j):
-            return Gs[index] @ inv_G[:, j], Gs[j] @ inv_G[:, j]
-
-        result = _polish(layout, _PolishOps(free, schur, correct, column), data, result, settings)
+        result = _polish(layout, _solve_polish_ops, (Gs, inv_G, inv_g), data, result, settings)
     row_bounds = (data.lo * data.norms + data.off, data.hi * data.norms + data.off)
     return _finish(layout, data, row_bounds, lambda a: a, (Ex, ex), x_init, result, result.primal)
 
@@ -1374,23 +1415,7 @@ def solve_prepared(
         # In the coordinates xi (T^T H T = diag(lam)); on the folded path the primal becomes xi here.
         result = result._replace(primal=to_xi(result.primal))
 
-        def free(y):
-            xi = -(h + y @ pr.GT) / pr.lam
-            return xi, xi @ GT_t
-
-        def schur(index):
-            rows = pr.GT[index]
-            return (rows / pr.lam) @ rows.T
-
-        def correct(xi, index, lam):
-            xi = xi - (lam @ pr.GT[index]) / pr.lam
-            return xi, xi @ GT_t
-
-        def column(index, j):
-            row = pr.GT[j] / pr.lam
-            return pr.GT[index] @ row, pr.GT[j] @ row
-
-        result = _polish(layout, _PolishOps(free, schur, correct, column), data, result, settings, keep)
+        result = _polish(layout, _prepared_polish_ops, (pr.GT, GT_t, pr.lam, h), data, result, settings, keep)
         v = result.primal @ pr.T.T
     else:
         v = ops.to_v(result.primal)
