@@ -45,10 +45,10 @@ def where_needed(fn, need, args, otherwise, chunk: int):
     ``chunk`` copies, runs ``fn`` vmapped on each chunk in turn (a while loop over ``ceil(count / chunk)`` chunks; a
     chunk's loops wait only for its own copies) and writes their results into ``otherwise``: the cost follows the
     number of copies that need ``fn``, not the batch. Nested ``vmap``s work (the outer ones batch the rule's
-    operations). Differentiation is not supported.
+    operations). Reverse-mode differentiation is not supported (as through any while loop).
 
     Args:
-        fn: a pure function of ``args``; it closes over no batched value (pass those in ``args``).
+        fn: a pure function of ``args``; it closes over no traced value (pass every array in ``args``).
         need: a bool scalar (one copy).
         args: a tuple of ``fn``'s arguments (pytrees of arrays).
         otherwise: the result where ``need`` is false: a pytree of arrays shaped and typed as ``fn``'s result.
@@ -92,4 +92,62 @@ def where_needed(fn, need, args, otherwise, chunk: int):
     return call(need, tuple(args), otherwise)
 
 
-__all__ = ["batched_like", "where_needed"]
+def compacted_while_loop(cond, body, args, carry, chunk: int):
+    """``lax.while_loop(lambda c: cond(args, c), lambda c: body(args, c), carry)`` (one copy); under ``jax.vmap``
+    each pass runs ``body`` on at most ``chunk`` copies whose ``cond`` holds, gathered from the batch.
+
+    Under ``vmap`` a while loop runs its body on every copy until the slowest copy's ``cond`` fails (the others keep
+    their carry by a select): the batch pays the slowest copy's passes. Here the batch rule keeps a flag per copy,
+    gathers the first ``chunk`` copies still running, runs one pass of ``body`` on them (vmapped), writes their
+    carries back and updates their flags, until no copy runs: the work follows the passes the copies need in all
+    (about their sum over ``chunk`` passes, and at least the slowest copy's count). The results are the plain
+    loop's, copy by copy. Nested ``vmap``s work (the outer ones batch the rule's operations). Reverse-mode
+    differentiation is not supported (as through any while loop).
+
+    Args:
+        cond: ``cond(args, carry) -> bool`` scalar (one copy).
+        body: ``body(args, carry) -> carry`` (one copy).
+        args: a tuple of the arrays the loop reads but does not change (pytrees; batched or not); ``cond`` and
+            ``body`` close over no traced value (pass every array here).
+        carry: the initial carry (a pytree of arrays).
+        chunk: copies per pass under ``vmap`` (a static int >= 1).
+    """
+    if chunk < 1:
+        raise ValueError(f"chunk: must be at least 1, got {chunk!r}")
+
+    @jax.custom_batching.custom_vmap
+    def call(args, carry):
+        return lax.while_loop(lambda c: cond(args, c), lambda c: body(args, c), carry)
+
+    @call.def_vmap
+    def rule(axis_size, in_batched, args, carry):
+        args_batched, carry_batched = in_batched
+        carry = jax.tree.map(
+            lambda a, b: a if b else jnp.broadcast_to(a, (axis_size, *jnp.shape(a))), carry, carry_batched
+        )
+        in_axes = jax.tree.map(lambda b: 0 if b else None, args_batched)
+        width = min(chunk, axis_size)
+        lanes = jnp.arange(width)
+
+        def run(state):
+            carry, running = state
+            count = jnp.sum(running.astype(jnp.int32))
+            # The copies still running first, in their order; a lane past the count repeats the last of them and
+            # writes nothing (its index is out of range, dropped).
+            index = jnp.argsort(~running, stable=True)[jnp.minimum(lanes, count - 1)]
+            lane_args = jax.tree.map(lambda a, b: a[index] if b else a, args, args_batched)
+            lane_carry = jax.tree.map(lambda a: a[index], carry)
+            lane_carry = jax.vmap(body, in_axes=(in_axes, 0))(lane_args, lane_carry)
+            target = jnp.where(lanes < count, index, axis_size)
+            carry = jax.tree.map(lambda a, r: a.at[target].set(r, mode="drop"), carry, lane_carry)
+            lane_running = jax.vmap(cond, in_axes=(in_axes, 0))(lane_args, lane_carry)
+            return carry, running.at[target].set(lane_running, mode="drop")
+
+        running = jax.vmap(cond, in_axes=(in_axes, 0))(args, carry)
+        carry, _ = lax.while_loop(lambda state: jnp.any(state[1]), run, (carry, running))
+        return carry, jax.tree.map(lambda _: True, carry)
+
+    return call(tuple(args), carry)
+
+
+__all__ = ["batched_like", "compacted_while_loop", "where_needed"]

@@ -87,7 +87,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from scg_jax.tracing import batched_like, where_needed
+from scg_jax.tracing import batched_like, compacted_while_loop, where_needed
 
 CONVERGED = 0
 MAX_ITERATIONS = 1
@@ -108,6 +108,10 @@ RESTORE_ROUNDS = 3
 # Copies per chunk of the dual active-set method under vmap: it runs only for the copies that need it, this many at a
 # time (``scg_jax.tracing.where_needed``).
 DUAL_ACTIVE_SET_CHUNK = 256
+# Copies per pass of the ADMM's loop under vmap, with a convergence tolerance (``compacted_while_loop``).
+ADMM_CHUNK = 256
+# Copies per polish round under vmap, with more than one round (``compacted_while_loop``).
+POLISH_CHUNK = 256
 
 
 # --------------------------------------------------------------------------------------------- problem
@@ -555,7 +559,8 @@ class _Operators(NamedTuple):
     - ``refactor(t, factor) -> (factor, t)``: the factor for step size ``t`` and the step size it is for;
     - ``dual(primal~, y) -> (residual, terms)``: the dual residual ``H v + g + G^T y`` (in the path's coordinates)
       and the three terms whose largest norm scales it;
-    - ``GT(y)``: ``G^T y`` in the same coordinates; ``to_v(primal)``: the decisions.
+    - ``GT(y)``: ``G^T y`` in the same coordinates; ``to_v(primal)``: the decisions; ``to_xi(primal)``: the
+      polish's coordinates (``v`` itself on ``solve``'s path).
     """
 
     update: Any
@@ -563,6 +568,7 @@ class _Operators(NamedTuple):
     dual: Any
     GT: Any
     to_v: Any
+    to_xi: Any
 
 
 def _norm(a):
@@ -586,44 +592,138 @@ class _Result(NamedTuple):
     violation: Any  # the largest violation of a hard row by the last v-update (problem units)
 
 
-def _admm(layout: Layout, ops: _Operators, data: _Scaled, s0, y0, t0, factor, settings: Settings, keep=None) -> _Result:
-    """Run the ADMM on one copy from ``(s0, y0, t0)`` (scaled rows; ``keep``: the rows they hold, when not all)."""
+def _solve_factorize(arrays, fold: bool, t):
+    """``solve``'s factor for step size ``t``: ``(H + t G^T G)^-1 [G^T, g]`` (n, p + 1), and (``fold``) ``G`` times it
+    (p, p + 1), each as (matrix, last column); ``arrays``: ``(Hs, Gs, gs, GTG)`` (scaled)."""
+    Hs, Gs, gs, GTG = arrays
+    L = jnp.linalg.cholesky(Hs + t * GTG)
+    solved = jax.scipy.linalg.cho_solve((L, True), jnp.concatenate([Gs.T, gs[:, None]], axis=1))
+    # Split here, not in the loop: a slice of a loop constant is copied at every iteration.
+    pairs = (solved, Gs @ solved) if fold else (solved,)
+    return tuple((a[:, :-1], a[:, -1]) for a in pairs)
+
+
+def _solve_admm_ops(arrays, fold: bool, ratio: float) -> _Operators:
+    """``solve``'s ADMM operators from its arrays ``(Hs, Gs, gs, GTG)``: the scaled Hessian (n, n), rows (p, n),
+    gradient (n,) and ``Gs^T Gs`` (n, n). ``fold``: ``s~`` from one folded (p, p + 1) product (a fixed step size);
+    ``ratio``: the step size's change that calls for a new factor."""
+    Hs, Gs, gs, GTG = arrays
+
+    def update(s, y, t, factor):
+        # factor: (_solve_factorize(t), t).
+        (M, m), *folded = factor[0]
+        w = t * s - y
+        v = M @ w - m
+        s_tilde = folded[0][0] @ w - folded[0][1] if fold else Gs @ v
+        return v, s_tilde
+
+    def refactor(t, factor):
+        matrices, t_old = factor
+        stale = (t > ratio * t_old) | (t < t_old / ratio)
+        # Without a refactorisation the step size stays the factorised one (the two must agree). A loop of at most
+        # one pass, not lax.cond: under vmap a cond computes both branches for every copy, the loop's body runs only
+        # when some copy is stale (and keeps the others' factors).
+        _, matrices, t_new = lax.while_loop(
+            lambda carry: carry[0],
+            lambda carry: (False, _solve_factorize(arrays, fold, t), t),
+            batched_like((stale, matrices, t_old), t),
+        )
+        return (matrices, t_new), t_new
+
+    def dual(v, y):
+        Hv, GTy = Hs @ v, Gs.T @ y
+        return Hv + gs + GTy, (Hv, GTy, gs)
+
+    return _Operators(update, refactor, dual, lambda y: Gs.T @ y, lambda v: v, lambda v: v)
+
+
+def _prepared_admm_ops(arrays) -> _Operators:
+    """``solve_prepared``'s ADMM operators in the coordinates ``xi`` (``T^T H T = diag(lam)``) from its arrays
+    ``(GT, GT_t, lam, T, fixed, rho, h, shift_h)``: the prepared rows (p, n) and their transpose, ``lam`` (n,),
+    ``T`` (n, n), the folded (p, p) product (or ``None``: an adaptive step size) and its step size, the copy's
+    ``T^T g`` (n,) and, folded, its (p,) shift. Products keep the copy's vector on the left (``w @ GT`` for
+    ``GT^T w``): under vmap the batch then stays the leading axis of the result, where ``GT @ xi`` gives (k, copies)
+    and every use after it reads across the batch (in the ADMM's loop that transposed read cost about four times
+    the product)."""
+    GT, GT_t, lam, T, fixed, rho, h, shift_h = arrays
+    if fixed is None:
+
+        def update(s, y, t, factor):
+            xi = ((t * s - y) @ GT - h) / (lam + t)
+            return xi, xi @ GT_t
+
+        def to_xi(primal):
+            return primal
+
+    else:
+
+        def update(s, y, t, factor):
+            # One (k, k) product per iteration (fixed is symmetric); xi~ = (GT^T (t s - y) - h) / (lam + rho) only
+            # at the checks.
+            return t * s - y, (t * s - y) @ fixed - shift_h
+
+        def to_xi(primal):
+            return (primal @ GT - h) / (lam + rho)
+
+    def dual(primal, y):
+        # T^T (H v + g + G^T y) with T^T H T = diag(lam): the dual residual in the coordinates xi.
+        xi = to_xi(primal)
+        GTy = y @ GT
+        return lam * xi + h + GTy, (lam * xi, GTy, h)
+
+    return _Operators(update, lambda t, factor: (factor, t), dual, lambda y: y @ GT, lambda p: to_xi(p) @ T.T, to_xi)
+
+
+def _admm(
+    layout: Layout, make_ops, ops_data, data: _Scaled, s0, y0, t0, factor, settings: Settings, keep=None
+) -> _Result:
+    """Run the ADMM on one copy from ``(s0, y0, t0)`` (scaled rows; ``keep``: the rows they hold, when not all).
+
+    ``make_ops(ops_data)`` gives the copy's ``_Operators``. With a convergence tolerance, under ``vmap`` the loop runs
+    each pass (``check_every`` iterations) on at most ``ADMM_CHUNK`` copies still running
+    (``scg_jax.tracing.compacted_while_loop``), so a batch pays its copies' iterations, not its slowest copy's
+    times the batch; with tolerance 0 every copy runs to the cap (unless certified infeasible), and the plain loop
+    runs."""
     dtype = s0.dtype
     alpha = settings.alpha
-    hard = jnp.asarray(_soft_mask(layout, keep)) == 0
-    tiny = jnp.finfo(dtype).tiny
-    project = _projection(layout, data, keep)
+    tiny = float(jnp.finfo(dtype).tiny)
 
-    def iterate(s, y, t, factor):
-        primal, s_tilde = ops.update(s, y, t, factor)
-        s_hat = alpha * s_tilde + (1.0 - alpha) * s
-        s_new = project(s_hat + y / t, t)
-        dy = t * (s_hat - s_new)
-        return primal, s_tilde, s_new, y + dy, dy
+    def body(args, carry):
+        # Every array the loop reads comes in args (the compacted loop's body may close over no traced value).
+        ops_data, data, fixed, keep = args
+        ops = make_ops(ops_data)
+        project = _projection(layout, data, keep)
+        hard = jnp.asarray(_soft_mask(layout, keep)) == 0
 
-    def check(primal, s_tilde, s, y, dy, t):
-        r_prim = _norm(s_tilde - s)
-        residual, terms = ops.dual(primal, y)
-        r_dual = _norm(residual)
-        scale_prim = jnp.maximum(_norm(s_tilde), _norm(s))
-        scale_dual = jnp.maximum(jnp.maximum(_norm(terms[0]), _norm(terms[1])), _norm(terms[2]))
-        converged = (r_prim <= settings.eps_abs + settings.eps_rel * scale_prim) & (
-            r_dual <= settings.eps_abs + settings.eps_rel * scale_dual
-        )
-        dy = jnp.where(hard, dy, 0.0)  # a soft row can always be met: no certificate from it
-        dy_norm = _norm(dy)
-        eps = settings.eps_infeasible * dy_norm
-        infeasible = (dy_norm > 0) & (_norm(ops.GT(dy)) <= eps) & (_support(dy, data.lo, data.hi) <= -eps)
-        relative_prim = r_prim / jnp.maximum(scale_prim, tiny)
-        relative_dual = jnp.maximum(r_dual / jnp.maximum(scale_dual, tiny), tiny)
-        ratio = jnp.sqrt(relative_prim / relative_dual)
-        ratio = jnp.where(jnp.isfinite(ratio) & (ratio > 0), ratio, 1.0)
-        t_new = jnp.clip(t * ratio, settings.rho_min, settings.rho_max)
-        excess = jnp.maximum(jnp.maximum(s_tilde - data.hi, data.lo - s_tilde), 0.0) * data.norms
-        violation = _norm(jnp.where(hard, excess, 0.0))
-        return converged, infeasible, r_prim, r_dual, t_new, violation
+        def iterate(s, y, t, factor):
+            primal, s_tilde = ops.update(s, y, t, factor)
+            s_hat = alpha * s_tilde + (1.0 - alpha) * s
+            s_new = project(s_hat + y / t, t)
+            dy = t * (s_hat - s_new)
+            return primal, s_tilde, s_new, y + dy, dy
 
-    def body(carry):
+        def check(primal, s_tilde, s, y, dy, t):
+            r_prim = _norm(s_tilde - s)
+            residual, terms = ops.dual(primal, y)
+            r_dual = _norm(residual)
+            scale_prim = jnp.maximum(_norm(s_tilde), _norm(s))
+            scale_dual = jnp.maximum(jnp.maximum(_norm(terms[0]), _norm(terms[1])), _norm(terms[2]))
+            converged = (r_prim <= settings.eps_abs + settings.eps_rel * scale_prim) & (
+                r_dual <= settings.eps_abs + settings.eps_rel * scale_dual
+            )
+            dy = jnp.where(hard, dy, 0.0)  # a soft row can always be met: no certificate from it
+            dy_norm = _norm(dy)
+            eps = settings.eps_infeasible * dy_norm
+            infeasible = (dy_norm > 0) & (_norm(ops.GT(dy)) <= eps) & (_support(dy, data.lo, data.hi) <= -eps)
+            relative_prim = r_prim / jnp.maximum(scale_prim, tiny)
+            relative_dual = jnp.maximum(r_dual / jnp.maximum(scale_dual, tiny), tiny)
+            ratio = jnp.sqrt(relative_prim / relative_dual)
+            ratio = jnp.where(jnp.isfinite(ratio) & (ratio > 0), ratio, 1.0)
+            t_new = jnp.clip(t * ratio, settings.rho_min, settings.rho_max)
+            excess = jnp.maximum(jnp.maximum(s_tilde - data.hi, data.lo - s_tilde), 0.0) * data.norms
+            violation = _norm(jnp.where(hard, excess, 0.0))
+            return converged, infeasible, r_prim, r_dual, t_new, violation
+
         _, s, y, t, carried, _, _, _, _, _, iterations, _ = carry
         factor = carried if settings.adaptive_rho else fixed
 
@@ -639,17 +739,23 @@ def _admm(layout: Layout, ops: _Operators, data: _Scaled, s0, y0, t0, factor, se
         out = (primal, s, y, t, carried, converged, infeasible, r_prim, r_dual, violation)
         return *out, iterations + settings.segment, done
 
-    def cond(carry):
+    def cond(args, carry):
         *_, iterations, done = carry
         return (~done) & (iterations < settings.cap)
 
+    ops = make_ops(ops_data)
     factor, t0 = ops.refactor(t0, factor)
     # A fixed step size's factor is not carried: under vmap the loop would select every copy's factor per segment.
     fixed, carried = (None, factor) if settings.adaptive_rho else (factor, ())
     primal0, _ = ops.update(s0, y0, t0, factor)
     false, zero = jnp.zeros((), bool), jnp.zeros((), dtype)
     init = (primal0, s0, y0, t0, carried, false, false, zero, zero, zero, jnp.zeros((), jnp.int32), false)
-    out = lax.while_loop(cond, body, batched_like(init, data.off))  # s0 is zeros on a cold start
+    init = batched_like(init, data.off)  # s0 is zeros on a cold start
+    args = (ops_data, data, fixed, keep)
+    if settings.eps_abs > 0 or settings.eps_rel > 0:
+        out = compacted_while_loop(cond, body, args, init, ADMM_CHUNK)
+    else:
+        out = lax.while_loop(lambda carry: cond(args, carry), lambda carry: body(args, carry), init)
     primal, s, y, t, _, converged, infeasible, r_prim, r_dual, violation, iterations, _ = out
     status = jnp.where(converged, CONVERGED, jnp.where(infeasible, INFEASIBLE, MAX_ITERATIONS))
     finite = jnp.isfinite(r_prim) & jnp.isfinite(r_dual) & jnp.isfinite(t)
@@ -816,41 +922,56 @@ def _polish(
         held_tol = tol = dual_tol = settings.polish_tol
     k = min(n, p)
 
-    def active_sets(s, y):
-        upper = hard & jnp.isfinite(hi) & (y + (s - hi) > 0)
-        lower = hard & jnp.isfinite(lo) & (y + (s - lo) < 0)
-        return upper, lower & ~upper
+    def checks(hard, lo, hi, price):
+        def active_sets(s, y):
+            upper = hard & jnp.isfinite(hi) & (y + (s - hi) > 0)
+            lower = hard & jnp.isfinite(lo) & (y + (s - lo) < 0)
+            return upper, lower & ~upper
 
-    def acceptable(primal, s, y):
-        violation = jnp.where(hard, jnp.maximum(jnp.maximum(s - hi, lo - s), 0.0), 0.0)
-        held = y != 0  # the rows of the set (the others have no multiplier)
-        at_high = jnp.isfinite(hi) & (s >= hi - held_tol)
-        at_low = jnp.isfinite(lo) & (s <= lo + held_tol)
-        # A multiplier pushes only at its own bound, with the right sign.
-        complementary = ~jnp.any(hard & (((y > dual_tol) & ~at_high) | ((y < -dual_tol) & ~at_low)))
-        finite = jnp.all(jnp.isfinite(s)) & jnp.all(jnp.isfinite(y)) & jnp.all(jnp.isfinite(primal))
-        priced = jnp.all(jnp.abs(y) <= price * (1.0 + held_tol))  # a soft row's force within its price
-        feasible = jnp.all(violation <= jnp.where(held, held_tol, tol))
-        return feasible & complementary & finite & priced
+        def acceptable(primal, s, y):
+            violation = jnp.where(hard, jnp.maximum(jnp.maximum(s - hi, lo - s), 0.0), 0.0)
+            held = y != 0  # the rows of the set (the others have no multiplier)
+            at_high = jnp.isfinite(hi) & (s >= hi - held_tol)
+            at_low = jnp.isfinite(lo) & (s <= lo + held_tol)
+            # A multiplier pushes only at its own bound, with the right sign.
+            complementary = ~jnp.any(hard & (((y > dual_tol) & ~at_high) | ((y < -dual_tol) & ~at_low)))
+            finite = jnp.all(jnp.isfinite(s)) & jnp.all(jnp.isfinite(y)) & jnp.all(jnp.isfinite(primal))
+            priced = jnp.all(jnp.abs(y) <= price * (1.0 + held_tol))  # a soft row's force within its price
+            feasible = jnp.all(violation <= jnp.where(held, held_tol, tol))
+            return feasible & complementary & finite & priced
 
-    def round_(carry):
-        upper, lower, best, accepted = carry
+        return active_sets, acceptable
+
+    active_sets, acceptable = checks(hard, lo, hi, price)
+
+    def round_(args, carry):
+        # Every array a round reads comes in args (the compacted loop's body may close over no traced value).
+        ops_data, hard, lo, hi, price, primal_free, s_free = args
+        ops = make_ops(ops_data)
+        active_sets, acceptable = checks(hard, lo, hi, price)
+        rounds, (upper, lower, best, accepted) = carry
         active = upper | lower
         index, lam = _forces_at_bounds(ops, jnp.where(upper, 1, jnp.where(lower, -1, 0)), lo, hi, s_free, k)
         primal, s = ops.correct(primal_free, index, lam)
         y = jnp.zeros(p, dtype).at[index].set(lam)
         good = (jnp.sum(active) <= k) & acceptable(primal, s, y) & ~accepted
         best = jax.tree.map(lambda a, b: jnp.where(good, a, b), (primal, s, y), best)
-        return (*active_sets(s, y), best, accepted | good)
+        return rounds + 1, (*active_sets(s, y), best, accepted | good)
+
+    def more(args, carry):
+        return (carry[0] < settings.polish_rounds) & ~carry[1][3]
 
     upper, lower = active_sets(result.s, result.y)
     init = (upper, lower, (result.primal, result.s, jnp.zeros_like(result.y)), jnp.zeros((), bool))
-    # Rounds until one is accepted (under vmap: until every copy has one), at most polish_rounds.
-    _, (_, _, (primal, s, y), ok) = lax.while_loop(
-        lambda carry: (carry[0] < settings.polish_rounds) & ~carry[1][3],
-        lambda carry: (carry[0] + 1, round_(carry[1])),
-        batched_like((jnp.zeros((), jnp.int32), init), result.s),
-    )
+    init = batched_like((jnp.zeros((), jnp.int32), init), result.s)
+    args = (ops_data, hard, lo, hi, price, primal_free, s_free)
+    # Rounds until one is accepted, at most polish_rounds; with more than one, under vmap only the copies that have
+    # none yet run the next (compacted_while_loop, POLISH_CHUNK copies per round), where a plain loop would run every
+    # copy's rounds until the batch's last is accepted.
+    if settings.polish_rounds > 1:
+        _, (_, _, (primal, s, y), ok) = compacted_while_loop(more, round_, args, init, POLISH_CHUNK)
+    else:
+        _, (_, _, (primal, s, y), ok) = lax.while_loop(lambda c: more(args, c), lambda c: round_(args, c), init)
     if settings.dual_active_set_steps:  # never with polish_soft_rows (Settings)
         # It starts from the ADMM's set, where the rounds started (their last set may be empty: see the method).
         upper, lower = active_sets(result.s, result.y)
@@ -900,8 +1021,11 @@ def _dual_active_set(
     multiplier can give way: the rows are infeasible); the caller checks the result as it checks a round's. The
     inverse and the steps run only for a batch where some copy's start is not yet the answer (most batches that need
     the method at all start at it: the ADMM's set, restored, is already optimal).
-    ``skip``: the copy needs none (the loops then do not run for it; under ``vmap``, they run while any copy of the
-    batch needs them).
+    ``skip``: the copy needs none; its result is the minimiser without rows (checked by the caller as any other).
+    Under ``vmap`` the method runs only for the copies that do not skip it, ``DUAL_ACTIVE_SET_CHUNK`` of them at a time
+    (``scg_jax.tracing.where_needed``): a batch's loops wait for the slowest copy of a chunk, and the copies that
+    skip it (their polish accepted, or the ADMM converged) cost nothing. ``make_ops(ops_data)`` gives the polish's
+    operators (``_PolishOps``); the method is written on ``ops_data`` so that each chunk gathers its copies' arrays.
 
     Goldfarb, D., and Idnani, A. (1983). A numerically stable dual method for solving strictly convex quadratic
     programs. Mathematical Programming 27, 1-33.
@@ -1134,44 +1258,17 @@ def solve(layout: Layout, qp: HorizonQP, x_init, warm: Warm | None = None, setti
     # one product per iteration instead of two (p^2 against 2 p n multiplications); v~ is formed at the checks only.
     fold = (not settings.adaptive_rho) and p <= 2 * n
 
-    def factorize(t):
-        L = jnp.linalg.cholesky(Hs + t * GTG)
-        solved = jax.scipy.linalg.cho_solve((L, True), jnp.concatenate([Gs.T, gs[:, None]], axis=1))
-        # Split here, not in the loop: a slice of a loop constant is copied at every iteration.
-        pairs = (solved, Gs @ solved) if fold else (solved,)
-        return tuple((a[:, :-1], a[:, -1]) for a in pairs)
-
-    def update(s, y, t, factor):
-        # factor: (factorize(t), t): (H + t G^T G)^-1 [G^T, g] (n, p + 1), and (folded) G times it (p, p + 1), each
-        # as (matrix, last column).
-        (M, m), *folded = factor[0]
-        w = t * s - y
-        v = M @ w - m
-        s_tilde = folded[0][0] @ w - folded[0][1] if fold else Gs @ v
-        return v, s_tilde
-
-    def refactor(t, factor):
-        matrices, t_old = factor
-        stale = (t > ratio * t_old) | (t < t_old / ratio)
-        # Without a refactorisation the step size stays the factorised one (the two must agree). A loop of at most
-        # one pass, not lax.cond: under vmap a cond computes both branches for every copy, the loop's body runs only
-        # when some copy is stale (and keeps the others' factors).
-        _, matrices, t_new = lax.while_loop(
-            lambda carry: carry[0], lambda carry: (False, factorize(t), t), batched_like((stale, matrices, t_old), t)
-        )
-        return (matrices, t_new), t_new
-
-    def dual(v, y):
-        Hv, GTy = Hs @ v, Gs.T @ y
-        return Hv + gs + GTy, (Hv, GTy, gs)
-
-    ops = _Operators(update, refactor, dual, lambda y: Gs.T @ y, lambda v: v)
+    make_ops = functools.partial(_solve_admm_ops, fold=fold, ratio=ratio)
+    ops_data = (Hs, Gs, gs, GTG)
     rho0 = (DEFAULT_RHO if settings.rho is None else settings.rho) * settings.rho_scale
     s0, y0, t0 = _start(data, warm, settings, rho0)
     # A factor stale for every t, so that the first refactor computes it.
-    factor = (jax.eval_shape(factorize, jnp.zeros((), dtype)), jnp.asarray(jnp.inf, dtype))
+    factor = (
+        jax.eval_shape(lambda t: _solve_factorize(ops_data, fold, t), jnp.zeros((), dtype)),
+        jnp.asarray(jnp.inf, dtype),
+    )
     factor = (jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), factor[0]), factor[1])
-    result = _admm(layout, ops, data, s0, y0, t0, factor, settings)
+    result = _admm(layout, make_ops, ops_data, data, s0, y0, t0, factor, settings)
     if settings.polish_rounds:
         # H^-1 [G^T, g] once (n, p + 1): the rounds then need products and gathers, no triangular solves (which
         # under vmap cost a round as much as the rest of it).
@@ -1372,37 +1469,10 @@ def solve_prepared(
     data = _Scaled(lo=(kept(row_bounds[0]) - off) / norms, hi=(kept(row_bounds[1]) - off) / norms, off=off,
                    norms=norms, scale=pr.scale)  # fmt: skip
 
-    # Products with this copy's vector on the left (``w @ GT`` for ``GT^T w``): under vmap the batch then stays the
-    # leading axis of the result, where ``GT @ xi`` gives (k, copies) and every use after it reads across the batch
-    # (in the ADMM's loop that transposed read cost about four times the product).
-    GT_t = pr.GT.T
-    if pr.fixed is None:
-
-        def update(s, y, t, factor):
-            xi = ((t * s - y) @ pr.GT - h) / (pr.lam + t)
-            return xi, xi @ GT_t
-
-        def to_xi(primal):
-            return primal
-
-    else:
-        shift_h = (h / (pr.lam + pr.rho)) @ GT_t
-
-        def update(s, y, t, factor):
-            # One (k, k) product per iteration (fixed is symmetric); xi~ = (GT^T (t s - y) - h) / (lam + rho) only
-            # at the checks.
-            return t * s - y, (t * s - y) @ pr.fixed - shift_h
-
-        def to_xi(primal):
-            return (primal @ pr.GT - h) / (pr.lam + pr.rho)
-
-    def dual(primal, y):
-        # T^T (H v + g + G^T y) with T^T H T = diag(lam): the dual residual in the coordinates xi.
-        xi = to_xi(primal)
-        GTy = y @ pr.GT
-        return pr.lam * xi + h + GTy, (pr.lam * xi, GTy, h)
-
-    ops = _Operators(update, lambda t, factor: (factor, t), dual, lambda y: y @ pr.GT, lambda p: to_xi(p) @ pr.T.T)
+    GT_t = pr.GT.T  # products keep the copy's vector on the left (see _prepared_admm_ops)
+    shift_h = None if pr.fixed is None else (h / (pr.lam + pr.rho)) @ GT_t
+    ops_data = (pr.GT, GT_t, pr.lam, pr.T, pr.fixed, pr.rho, h, shift_h)
+    ops = _prepared_admm_ops(ops_data)
     if warm is not None and not (keep is None and isinstance(warm_steps, int) and warm_steps == 0):
         # Each held row's source in the warm start, moved warm_steps stages ahead (``shift``) in one gather. The
         # left-out rows' entries are never read (nor checked for being finite).
@@ -1410,10 +1480,10 @@ def solve_prepared(
     s0, y0, t0 = _start(data, warm, settings, pr.rho)  # a cold start: the prepared step size (rho_scale in it)
     if not settings.adaptive_rho:  # the prepared step size throughout (the folded products are for it)
         t0 = pr.rho
-    result = _admm(layout, ops, data, s0, y0, t0, (), settings, keep)
+    result = _admm(layout, _prepared_admm_ops, ops_data, data, s0, y0, t0, (), settings, keep)
     if settings.polish_rounds:
         # In the coordinates xi (T^T H T = diag(lam)); on the folded path the primal becomes xi here.
-        result = result._replace(primal=to_xi(result.primal))
+        result = result._replace(primal=ops.to_xi(result.primal))
 
         result = _polish(layout, _prepared_polish_ops, (pr.GT, GT_t, pr.lam, h), data, result, settings, keep)
         v = result.primal @ pr.T.T
