@@ -1,5 +1,6 @@
 """``scg_jax.tracing``: ``batched_like`` leaves values unchanged and a vmapped loop whose carry it prepares is batched
-once; ``where_needed`` gives ``fn`` where needed and ``otherwise`` elsewhere, copy by copy, under any vmap."""
+once; ``where_needed`` gives ``fn`` where needed and ``otherwise`` elsewhere, and ``compacted_while_loop`` the plain
+loop's result, copy by copy under any vmap, each running only the passes the copies need."""
 
 import jax
 import jax.numpy as jnp
@@ -7,7 +8,7 @@ import numpy as np
 import pytest
 from jax import lax
 
-from scg_jax.tracing import batched_like, where_needed
+from scg_jax.tracing import batched_like, compacted_while_loop, where_needed
 
 
 def _tree():
@@ -142,3 +143,54 @@ def test_where_needed_runs_fn_only_for_the_copies_that_need_it():
     assert sorted(passes) == [0, 0, 0, 1, 1, 2, 3]
     with pytest.raises(ValueError, match="chunk: must be at least 1, got 0"):
         where_needed(_halvings, True, (jnp.float32(1.0), 1.0), jnp.float32(0.0), chunk=0)
+
+
+def _count_cond(args, carry):
+    return carry[0] < args[0].astype(jnp.int32)
+
+
+def _halve_towards(args, carry):
+    i, v = carry
+    return i + 1, 0.5 * v + args[1]
+
+
+def test_compacted_while_loop_gives_the_plain_loops_result_copy_by_copy():
+    # Each copy halves towards a floor(x) times (x = 3, a = 1: 3 -> 2.5 -> 2.25 -> 2.125), as the plain loop does,
+    # vmapped in passes of 3 copies, nested under a second vmap (a batched), and without vmap.
+    def one(x, a):
+        return compacted_while_loop(_count_cond, _halve_towards, (x, a), (jnp.int32(0), x), chunk=3)
+
+    def plain(x, a):
+        return lax.while_loop(lambda c: _count_cond((x, a), c), lambda c: _halve_towards((x, a), c), (jnp.int32(0), x))
+
+    xs = jnp.array([0.0, 5.0, 1.0, 7.0, 3.0, 0.0, 2.0, 9.0])
+    count, value = jax.jit(jax.vmap(one, in_axes=(0, None)))(xs, 1.0)
+    np.testing.assert_array_equal(np.asarray(count), [0, 5, 1, 7, 3, 0, 2, 9])
+    np.testing.assert_allclose(np.asarray(value), [_expected_halvings(x, 1.0) for x in [0, 5, 1, 7, 3, 0, 2, 9]])
+    assert float(value[4]) == pytest.approx(2.125)
+    for got, want in zip(jax.jit(one)(jnp.float32(3.0), 1.0), plain(jnp.float32(3.0), 1.0), strict=True):
+        assert float(got) == float(want)
+    xs2, a2 = jnp.stack([xs, xs[::-1]]), jnp.array([1.0, 2.0])
+    nested = jax.jit(jax.vmap(jax.vmap(one, in_axes=(0, None)), in_axes=(0, 0)))(xs2, a2)
+    expected = jax.vmap(jax.vmap(plain, in_axes=(0, None)), in_axes=(0, 0))(xs2, a2)
+    for got, want in zip(nested, expected, strict=True):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+
+
+def test_compacted_while_loop_runs_only_the_passes_the_copies_need():
+    # The copies x = 1, 4, 2 (and two at 0) need 1 + 4 + 2 = 7 passes; the plain vmapped loop runs all 5 copies
+    # through the slowest's 4 (20 passes). With one copy per pass the body runs 7 times.
+    passes = []
+
+    def body(args, carry):
+        jax.debug.callback(lambda i: passes.append(int(i)), carry[0])
+        return _halve_towards(args, carry)
+
+    def one(x):
+        return compacted_while_loop(_count_cond, body, (x, 0.0), (jnp.int32(0), x), chunk=1)[1]
+
+    xs = jnp.array([0.0, 1.0, 4.0, 0.0, 2.0])
+    np.testing.assert_allclose(np.asarray(jax.jit(jax.vmap(one))(xs)), [0.0, 0.5, 0.25, 0.0, 0.5])
+    assert sorted(passes) == [0, 0, 0, 1, 1, 2, 3]
+    with pytest.raises(ValueError, match="chunk: must be at least 1, got 0"):
+        compacted_while_loop(_count_cond, _halve_towards, (jnp.float32(1.0), 1.0), (jnp.int32(0), 1.0), chunk=0)
