@@ -67,6 +67,7 @@ import scg_jax
 from scg_algorithms.base import Reference
 from scg_algorithms.evaluation import evaluate
 from scg_algorithms.gp_mpc.controller import learn
+from scg_algorithms.mpc import structured
 from scg_algorithms.mpc.cases import CASES, make_case_env, random_states
 from scg_algorithms.mpc.linear import Options as LinearOptions
 from scg_algorithms.mpc.linear import make_linear_mpc, make_linear_mpc_casadi
@@ -684,13 +685,15 @@ Linear MPC, horizon {meta["config"]["horizon"]}, float32, random states around t
 sets; u0 error over the states qpOASES solves), each solved cold. admm: `scg_algorithms.mpc.structured` with linear
 MPC's defaults (tolerance {LINEAR.admm_tol:g}, at most {LINEAR.admm_max_iter:,} iterations and
 {LINEAR.admm_polish_rounds} rounds of active-set polish, then, where a copy stopped at the cap and no round was
-accepted, at most {LINEAR.admm_dual_active_set_steps} steps of a dual active-set method; each batch runs until its
-slowest copy is done); ipm: `scg_algorithms.mpc.interior_point` with linear MPC's defaults (at most
-{LINEAR.ipm_max_iter} iterations, complementarity tolerance {LINEAR.ipm_tol:g}, {LINEAR.ipm_polish_rounds} polish rounds
-from each of two starts); qpax: 40 interior-point iterations; qpOASES and OSQP: `linear_mpc_casadi`, one problem
-at a time on the host. env: one vmapped `env.step`. A copy whose iterate still violates a row by more than
-`feasibility_tol` (1e-3) after its iterations falls back to the clipped LQR input, which is where a throughput
-setting's largest errors come from. Throughput settings: {settings}. Load average at the start and end:
+accepted, at most {LINEAR.admm_dual_active_set_steps} steps of a dual active-set method; under vmap the ADMM's
+passes and the polish's rounds run on the copies still running, {structured.ADMM_CHUNK} at a time, and the dual
+active-set method on the copies that need it, {structured.DUAL_ACTIVE_SET_CHUNK} at a time); ipm:
+`scg_algorithms.mpc.interior_point` with linear MPC's defaults (at most {LINEAR.ipm_max_iter} iterations,
+complementarity tolerance {LINEAR.ipm_tol:g}, {LINEAR.ipm_polish_rounds} polish rounds from each of two starts);
+qpax: 40 interior-point iterations; qpOASES and OSQP: `linear_mpc_casadi`, one problem at a time on the host.
+env: one vmapped `env.step`. A copy whose iterate still violates a row by more than `feasibility_tol` (1e-3) after
+its iterations falls back to the clipped LQR input, which is where a throughput setting's largest errors come from.
+Throughput settings: {settings}. Load average at the start and end:
 {meta["load_average"]} / {meta["load_average_end"]}.
 """ + "\n".join(fast_lines)
     notes += (

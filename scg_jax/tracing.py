@@ -36,7 +36,7 @@ def batched_like(tree, anchor):
     return jax.tree.map(lambda leaf: jnp.where(keep, leaf, leaf), tree)
 
 
-def where_needed(fn, need, args, otherwise, chunk: int):
+def where_needed(fn, need, args, otherwise, chunk: int | None):
     """``fn(*args)`` where ``need``, else ``otherwise`` (one copy); under ``jax.vmap``, ``fn`` runs only for the copies
     that need it, ``chunk`` of them at a time.
 
@@ -52,10 +52,15 @@ def where_needed(fn, need, args, otherwise, chunk: int):
         need: a bool scalar (one copy).
         args: a tuple of ``fn``'s arguments (pytrees of arrays).
         otherwise: the result where ``need`` is false: a pytree of arrays shaped and typed as ``fn``'s result.
-        chunk: copies per chunk (a static int >= 1).
+        chunk: copies per chunk (a static int >= 1), or ``None``: no gathering (under ``vmap`` ``fn`` then runs for
+            every copy of a batch where some copy needs it, in a loop of at most one pass, which skips the batch
+            where none does).
     """
+    if chunk is None:
+        once = lax.while_loop(lambda c: c[0], lambda c: (jnp.zeros((), bool), fn(*args)), (need, otherwise))
+        return jax.tree.map(lambda a, b: jnp.where(need, a, b), once[1], otherwise)
     if chunk < 1:
-        raise ValueError(f"chunk: must be at least 1, got {chunk!r}")
+        raise ValueError(f"chunk: must be at least 1 (or None), got {chunk!r}")
 
     @jax.custom_batching.custom_vmap
     def call(need, args, otherwise):
@@ -92,17 +97,20 @@ def where_needed(fn, need, args, otherwise, chunk: int):
     return call(need, tuple(args), otherwise)
 
 
-def compacted_while_loop(cond, body, args, carry, chunk: int):
-    """``lax.while_loop(lambda c: cond(args, c), lambda c: body(args, c), carry)`` (one copy); under ``jax.vmap``
-    each pass runs ``body`` on at most ``chunk`` copies whose ``cond`` holds, gathered from the batch.
+def compacted_while_loop(cond, body, args, carry, chunk: int | None):
+    """``lax.while_loop(lambda c: cond(args, c), lambda c: body(args, c), carry)`` (one copy); under ``jax.vmap``,
+    once at most half of the batch runs, each pass runs ``body`` on at most ``chunk`` copies whose ``cond`` holds,
+    gathered from the batch.
 
     Under ``vmap`` a while loop runs its body on every copy until the slowest copy's ``cond`` fails (the others keep
-    their carry by a select): the batch pays the slowest copy's passes. Here the batch rule keeps a flag per copy,
+    their carry by a select): the batch pays the slowest copy's passes. Here the batch rule keeps a flag per copy;
+    while more than half of the batch runs, a pass covers the whole batch (as the plain loop's); after that it
     gathers the first ``chunk`` copies still running, runs one pass of ``body`` on them (vmapped), writes their
     carries back and updates their flags, until no copy runs: the work follows the passes the copies need in all
     (about their sum over ``chunk`` passes, and at least the slowest copy's count). The results are the plain
-    loop's, copy by copy. Nested ``vmap``s work (the outer ones batch the rule's operations). Reverse-mode
-    differentiation is not supported (as through any while loop).
+    loop's, copy by copy (to rounding: a product over fewer copies may round differently). Nested ``vmap``s work
+    (the outer ones batch the rule's operations). Reverse-mode differentiation is not supported (as through any while
+    loop).
 
     Args:
         cond: ``cond(args, carry) -> bool`` scalar (one copy).
@@ -110,10 +118,12 @@ def compacted_while_loop(cond, body, args, carry, chunk: int):
         args: a tuple of the arrays the loop reads but does not change (pytrees; batched or not); ``cond`` and
             ``body`` close over no traced value (pass every array here).
         carry: the initial carry (a pytree of arrays).
-        chunk: copies per pass under ``vmap`` (a static int >= 1).
+        chunk: copies per pass under ``vmap`` (a static int >= 1), or ``None``: the plain loop.
     """
+    if chunk is None:
+        return lax.while_loop(lambda c: cond(args, c), lambda c: body(args, c), carry)
     if chunk < 1:
-        raise ValueError(f"chunk: must be at least 1, got {chunk!r}")
+        raise ValueError(f"chunk: must be at least 1 (or None), got {chunk!r}")
 
     @jax.custom_batching.custom_vmap
     def call(args, carry):
@@ -129,7 +139,7 @@ def compacted_while_loop(cond, body, args, carry, chunk: int):
         width = min(chunk, axis_size)
         lanes = jnp.arange(width)
 
-        def run(state):
+        def gathered(state):
             carry, running = state
             count = jnp.sum(running.astype(jnp.int32))
             # The copies still running first, in their order; a lane past the count repeats the last of them and
@@ -142,6 +152,20 @@ def compacted_while_loop(cond, body, args, carry, chunk: int):
             carry = jax.tree.map(lambda a, r: a.at[target].set(r, mode="drop"), carry, lane_carry)
             lane_running = jax.vmap(cond, in_axes=(in_axes, 0))(lane_args, lane_carry)
             return carry, running.at[target].set(lane_running, mode="drop")
+
+        def whole(state):
+            # A pass over the whole batch, as the plain loop's (the copies that stopped keep their carry).
+            carry, running = state
+            new = jax.vmap(body, in_axes=(in_axes, 0))(args, carry)
+            keep = lambda n, o: jnp.where(running.reshape(-1, *([1] * (n.ndim - 1))), n, o)  # noqa: E731
+            carry = jax.tree.map(keep, new, carry)
+            return carry, running & jax.vmap(cond, in_axes=(in_axes, 0))(args, carry)
+
+        def run(state):
+            # While more than half of the batch runs (or more copies than a pass holds, with a chunk over half the
+            # batch), gathering would save less than its own cost: the whole batch passes, as in the plain loop.
+            count = jnp.sum(state[1].astype(jnp.int32))
+            return lax.cond(count > max(axis_size // 2, width), whole, gathered, state)
 
         running = jax.vmap(cond, in_axes=(in_axes, 0))(args, carry)
         carry, _ = lax.while_loop(lambda state: jnp.any(state[1]), run, (carry, running))

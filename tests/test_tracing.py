@@ -109,6 +109,8 @@ def test_where_needed_gives_fn_where_needed_and_otherwise_elsewhere_in_chunks_an
     out = np.asarray(jax.jit(jax.vmap(one, in_axes=(0, None)))(xs, 1.0))
     expected = [_expected_halvings(x, 1.0) if x > 2 else -x for x in range(10)]
     np.testing.assert_allclose(out, expected, rtol=1e-6)
+    plain = jax.vmap(lambda x, a: where_needed(_halvings, x > 2.0, (x, a), -x, chunk=None), in_axes=(0, None))
+    np.testing.assert_array_equal(np.asarray(jax.jit(plain)(xs, 1.0)), out)  # no gathering: the same values
     assert out[3] == pytest.approx(2.125)
     # One copy, no vmap (a cond); no copy needs it; every copy does.
     assert float(jax.jit(one)(jnp.float32(3.0), 1.0)) == pytest.approx(2.125)
@@ -141,7 +143,7 @@ def test_where_needed_runs_fn_only_for_the_copies_that_need_it():
     xs = jnp.array([0.0, 1.0, 4.0, 0.0, 2.0])
     np.testing.assert_allclose(np.asarray(jax.jit(jax.vmap(one))(xs)), [-1.0, 0.5, 0.25, -1.0, 0.5], rtol=1e-6)
     assert sorted(passes) == [0, 0, 0, 1, 1, 2, 3]
-    with pytest.raises(ValueError, match="chunk: must be at least 1, got 0"):
+    with pytest.raises(ValueError, match=r"chunk: must be at least 1 \(or None\), got 0"):
         where_needed(_halvings, True, (jnp.float32(1.0), 1.0), jnp.float32(0.0), chunk=0)
 
 
@@ -165,6 +167,10 @@ def test_compacted_while_loop_gives_the_plain_loops_result_copy_by_copy():
 
     xs = jnp.array([0.0, 5.0, 1.0, 7.0, 3.0, 0.0, 2.0, 9.0])
     count, value = jax.jit(jax.vmap(one, in_axes=(0, None)))(xs, 1.0)
+    unchunked = jax.vmap(
+        lambda x: compacted_while_loop(_count_cond, _halve_towards, (x, 1.0), (jnp.int32(0), x), None)
+    )(xs)
+    np.testing.assert_array_equal(np.asarray(unchunked[1]), np.asarray(value))  # chunk None: the plain loop
     np.testing.assert_array_equal(np.asarray(count), [0, 5, 1, 7, 3, 0, 2, 9])
     np.testing.assert_allclose(np.asarray(value), [_expected_halvings(x, 1.0) for x in [0, 5, 1, 7, 3, 0, 2, 9]])
     assert float(value[4]) == pytest.approx(2.125)
@@ -178,8 +184,10 @@ def test_compacted_while_loop_gives_the_plain_loops_result_copy_by_copy():
 
 
 def test_compacted_while_loop_runs_only_the_passes_the_copies_need():
-    # The copies x = 1, 4, 2 (and two at 0) need 1 + 4 + 2 = 7 passes; the plain vmapped loop runs all 5 copies
-    # through the slowest's 4 (20 passes). With one copy per pass the body runs 7 times.
+    # The copies x = 1, 4, 2 (and five at 0) need 1 + 4 + 2 = 7 passes; the plain vmapped loop runs all 8 copies
+    # through the slowest's 4 (32 passes). With at most half of the batch running and one copy per pass, the body
+    # runs 7 times. With more than half running, a pass covers the whole batch: x = 1, 1, 1, 3 run one whole pass
+    # (4 copies at i = 0), then the last copy alone (i = 1, 2): 6, where the plain loop runs 12.
     passes = []
 
     def body(args, carry):
@@ -189,8 +197,12 @@ def test_compacted_while_loop_runs_only_the_passes_the_copies_need():
     def one(x):
         return compacted_while_loop(_count_cond, body, (x, 0.0), (jnp.int32(0), x), chunk=1)[1]
 
-    xs = jnp.array([0.0, 1.0, 4.0, 0.0, 2.0])
-    np.testing.assert_allclose(np.asarray(jax.jit(jax.vmap(one))(xs)), [0.0, 0.5, 0.25, 0.0, 0.5])
+    run = jax.jit(jax.vmap(one))
+    xs = jnp.array([0.0, 1.0, 4.0, 0.0, 2.0, 0.0, 0.0, 0.0])
+    np.testing.assert_allclose(np.asarray(run(xs)), [0.0, 0.5, 0.25, 0.0, 0.5, 0.0, 0.0, 0.0])
     assert sorted(passes) == [0, 0, 0, 1, 1, 2, 3]
-    with pytest.raises(ValueError, match="chunk: must be at least 1, got 0"):
+    passes.clear()
+    np.testing.assert_allclose(np.asarray(run(jnp.array([1.0, 1.0, 1.0, 3.0]))), [0.5, 0.5, 0.5, 0.375])
+    assert sorted(passes) == [0, 0, 0, 0, 1, 2]
+    with pytest.raises(ValueError, match=r"chunk: must be at least 1 \(or None\), got 0"):
         compacted_while_loop(_count_cond, _halve_towards, (jnp.float32(1.0), 1.0), (jnp.int32(0), 1.0), chunk=0)

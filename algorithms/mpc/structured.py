@@ -60,12 +60,15 @@ segment, on the scaled problem: OSQP's stopping test (``|G v~ - s|_inf <= eps_ab
 path the dual residual is measured in the coordinates ``xi``), OSQP's certificate of primal infeasibility on the
 hard rows (``|G^T dy|_inf <= eps_infeasible |dy|_inf`` and ``high^T dy+ + low^T dy- <= -eps_infeasible
 |dy|_inf``), and OSQP's step-size rule ``t <- t sqrt(relative primal residual / relative dual residual)``. Under
-``vmap`` the while loop runs until its slowest copy stops, and a copy that stopped keeps its result;
-``eps_abs = eps_rel = 0`` runs every solve to the cap (no copy waits for another, the fastest batched setting).
-Then at most ``polish_rounds`` rounds of the active-set polish (``_polish``, with its acceptance tolerances), and,
-for a copy whose ADMM stopped at the cap and whose rounds found no acceptable plan, at most
-``dual_active_set_steps`` steps of a dual active-set method (``_dual_active_set``); both are while loops that stop
-once every copy of the batch is done.
+``vmap`` a plain while loop would run every copy until the slowest stops; on a CPU (``_chunk``) each pass (a
+segment) runs on at most ``ADMM_CHUNK`` copies still running, gathered from the batch
+(``scg_jax.tracing.compacted_while_loop``), so a batch pays for the segments its copies need. ``eps_abs = eps_rel =
+0`` runs every solve to the cap in a plain loop (no copy waits for another, the fastest batched setting for a fixed
+count). Then at most ``polish_rounds`` rounds of the active-set polish (``_polish``, with its acceptance tolerances;
+more than one round: compacted as the ADMM's segments), and, for a copy whose ADMM stopped at the cap and whose
+rounds found no acceptable plan, at most ``dual_active_set_steps`` steps of a dual active-set method
+(``_dual_active_set``, run only for the copies that need it, ``DUAL_ACTIVE_SET_CHUNK`` at a time:
+``scg_jax.tracing.where_needed``).
 
 **Solution.** The inputs are taken from the projected ``s`` (inside their box whatever the iteration count), the
 states from ``v~`` through the model. ``status``: ``CONVERGED`` (0); ``MAX_ITERATIONS`` (1: the last iterate, with
@@ -105,13 +108,20 @@ POLISH_TOL = 1e-5
 POLISH_DUAL_TOL = 2e-6
 # Solves that drop the wrong-signed rows from the ADMM's set before the dual active-set method starts there.
 RESTORE_ROUNDS = 3
-# Copies per chunk of the dual active-set method under vmap: it runs only for the copies that need it, this many at a
-# time (``scg_jax.tracing.where_needed``).
+# Under vmap on a CPU (see _chunk): copies per chunk of the dual active-set method, which runs only for the copies that
+# need it (``scg_jax.tracing.where_needed``); copies per pass of the ADMM's loop with a convergence tolerance and of
+# the polish's rounds (more than one), which run only on the copies still running (``compacted_while_loop``).
+# Passes of 64-512 copies did about as well on the 2-core machine (linear MPC's defaults, 4,096 copies), 1,024 worse.
 DUAL_ACTIVE_SET_CHUNK = 256
-# Copies per pass of the ADMM's loop under vmap, with a convergence tolerance (``compacted_while_loop``).
 ADMM_CHUNK = 256
-# Copies per polish round under vmap, with more than one round (``compacted_while_loop``).
 POLISH_CHUNK = 256
+
+
+def _chunk(size: int) -> int | None:
+    """``size`` on a CPU, where a pass over fewer copies costs about proportionally less; ``None`` (the plain loops)
+    on an accelerator, where a pass over a few hundred copies may cost about as much as over thousands (not measured:
+    no device was at hand)."""
+    return size if jax.default_backend() == "cpu" else None
 
 
 # --------------------------------------------------------------------------------------------- problem
@@ -679,7 +689,8 @@ def _admm(
 ) -> _Result:
     """Run the ADMM on one copy from ``(s0, y0, t0)`` (scaled rows; ``keep``: the rows they hold, when not all).
 
-    ``make_ops(ops_data)`` gives the copy's ``_Operators``. With a convergence tolerance, under ``vmap`` the loop runs
+    ``make_ops(ops_data)`` gives the copy's ``_Operators``. With a convergence tolerance, under ``vmap`` on a CPU
+    (``_chunk``) the loop runs
     each pass (``check_every`` iterations) on at most ``ADMM_CHUNK`` copies still running
     (``scg_jax.tracing.compacted_while_loop``), so a batch pays its copies' iterations, not its slowest copy's
     times the batch; with tolerance 0 every copy runs to the cap (unless certified infeasible), and the plain loop
@@ -753,7 +764,7 @@ def _admm(
     init = batched_like(init, data.off)  # s0 is zeros on a cold start
     args = (ops_data, data, fixed, keep)
     if settings.eps_abs > 0 or settings.eps_rel > 0:
-        out = compacted_while_loop(cond, body, args, init, ADMM_CHUNK)
+        out = compacted_while_loop(cond, body, args, init, _chunk(ADMM_CHUNK))
     else:
         out = lax.while_loop(lambda carry: cond(args, carry), lambda carry: body(args, carry), init)
     primal, s, y, t, _, converged, infeasible, r_prim, r_dual, violation, iterations, _ = out
@@ -969,7 +980,7 @@ def _polish(
     # none yet run the next (compacted_while_loop, POLISH_CHUNK copies per round), where a plain loop would run every
     # copy's rounds until the batch's last is accepted.
     if settings.polish_rounds > 1:
-        _, (_, _, (primal, s, y), ok) = compacted_while_loop(more, round_, args, init, POLISH_CHUNK)
+        _, (_, _, (primal, s, y), ok) = compacted_while_loop(more, round_, args, init, _chunk(POLISH_CHUNK))
     else:
         _, (_, _, (primal, s, y), ok) = lax.while_loop(lambda c: more(args, c), lambda c: round_(args, c), init)
     if settings.dual_active_set_steps:  # never with polish_soft_rows (Settings)
@@ -1022,7 +1033,7 @@ def _dual_active_set(
     inverse and the steps run only for a batch where some copy's start is not yet the answer (most batches that need
     the method at all start at it: the ADMM's set, restored, is already optimal).
     ``skip``: the copy needs none; its result is the minimiser without rows (checked by the caller as any other).
-    Under ``vmap`` the method runs only for the copies that do not skip it, ``DUAL_ACTIVE_SET_CHUNK`` of them at a time
+    Under ``vmap`` on a CPU the method runs only for the copies that do not skip it, ``DUAL_ACTIVE_SET_CHUNK`` at a time
     (``scg_jax.tracing.where_needed``): a batch's loops wait for the slowest copy of a chunk, and the copies that
     skip it (their polish accepted, or the ADMM converged) cost nothing. ``make_ops(ops_data)`` gives the polish's
     operators (``_PolishOps``); the method is written on ``ops_data`` so that each chunk gathers its copies' arrays.
@@ -1033,7 +1044,9 @@ def _dual_active_set(
     p = s_free.shape[0]
     dtype = s_free.dtype
 
-    def method(ops_data, hard, lo, hi, primal_free, s_free, start_side):
+    def method(ops_data, hard, lo, hi, primal_free, s_free, start_side, needed):
+        # needed: false for a copy that skips the method, whose loops then do not run (without gathering, under
+        # vmap every copy of the batch comes here).
         ops = make_ops(ops_data)
         rows = jnp.arange(p)
         # A row whose Schur complement on the set is below this share of its diagonal depends on the set: in float32
@@ -1124,7 +1137,7 @@ def _dual_active_set(
         zero = jnp.zeros((), jnp.int32)
         side = jnp.where(jnp.sum(start_side != 0) <= k, start_side, 0).astype(jnp.int32)
         side, lam, _, unsettled = lax.while_loop(
-            lambda c: c[3] & (c[2] < RESTORE_ROUNDS),
+            lambda c: needed & c[3] & (c[2] < RESTORE_ROUNDS),
             restore,
             batched_like((side, jnp.zeros(p, dtype), zero, jnp.any(side != 0)), s_free),
         )
@@ -1132,7 +1145,7 @@ def _dual_active_set(
         side, lam = jnp.where(cold, 0, side), jnp.where(cold, 0.0, lam)
         start = pick(side, lam, -1 + zero, jnp.ones((), dtype), jnp.zeros((), bool), zero, *solution(side, lam))
         carry = batched_like(start, s_free)
-        need = ~carry[4]  # not yet met (a start is never stuck, and max_steps >= 1 here)
+        need = needed & ~carry[4]  # not yet met (a start is never stuck, and max_steps >= 1 here)
 
         def incremental(carry):
             side = carry[0]
@@ -1162,8 +1175,8 @@ def _dual_active_set(
     # Only for the copies that need it: under vmap, gathered into chunks (where_needed), so that neither the start's
     # solves nor the steps run for the copies whose polish was accepted.
     otherwise = (primal_free, s_free, jnp.zeros(p, dtype))
-    args = (ops_data, hard, lo, hi, primal_free, s_free, start_side)
-    return where_needed(method, ~skip, args, otherwise, DUAL_ACTIVE_SET_CHUNK)
+    args = (ops_data, hard, lo, hi, primal_free, s_free, start_side, ~skip)
+    return where_needed(method, ~skip, args, otherwise, _chunk(DUAL_ACTIVE_SET_CHUNK))
 
 
 def _start(data: _Scaled, warm: Warm | None, settings: Settings, rho0):
