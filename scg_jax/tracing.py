@@ -1,4 +1,4 @@
-"""Helpers that keep tracing cheap under ``jax.vmap``.
+"""Helpers that keep tracing and batched loops cheap under ``jax.vmap``.
 
 ``jax.vmap`` batches a loop (``lax.scan``, ``lax.while_loop``, ``lax.fori_loop``) by tracing its body to find which
 carry entries differ between copies: an entry that starts the same for every copy (a constant, zeros, a counter) but
@@ -6,6 +6,11 @@ that the body makes differ is found only by a second trace of the body with it b
 is traced again each time. ``batched_like`` makes every entry of an initial carry differ between copies from the start,
 so each loop body is traced once: the vmapped closed loop of an SQP-RTI cart-pole controller traces in about 3.7 s
 instead of about 7 s.
+
+Under ``vmap`` a loop also runs every copy until the batch's slowest is done, and a ``lax.cond`` computes both
+branches for every copy. ``compacted_while_loop`` and ``where_needed`` are batch rules (``jax.custom_batching``) that
+gather the copies still running, or the copies that need a branch, so that a batch pays for the work its copies need:
+the structured MPC solver's loops run this way (on a 2-core CPU, linear MPC's defaults 1.5-4x as fast).
 """
 
 from __future__ import annotations
