@@ -398,14 +398,14 @@ def _error_summary(u, u_ref, feasible) -> dict:
 
 
 def measure_qp_solvers(name: str, with_state: bool, args) -> dict:
-    """QPs/s of linear MPC with admm, ipm and qpax at each batch, CasADi qpOASES and OSQP one at a time, the env's
-    steps/s at each batch, and admm's and ipm's first-input differences from qpOASES over ``parity_states``
-    states."""
+    """QPs/s of linear MPC with admm, active_set, ipm and qpax at each batch, CasADi qpOASES and OSQP one at a time,
+    the env's steps/s at each batch, and admm's, active_set's and ipm's first-input differences from qpOASES over
+    ``parity_states`` states."""
     env, params = make_case_env(name, with_state)
     reference = Reference(*(np.asarray(a, np.float64) for a in env.reference(params)))
     reference32 = Reference(*(jnp.asarray(a) for a in reference))
     options = {"horizon": args.horizon}
-    solvers = ("admm", "ipm", "qpax")
+    solvers = ("admm", "active_set", "ipm", "qpax")
     controllers = {solver: make_linear_mpc(env, params, {**options, "solver": solver}) for solver in solvers}
     # Fixed iteration counts (no copy waits for another): the throughput settings, each with its own parity error.
     for setting, overrides in THROUGHPUT.items():
@@ -416,7 +416,7 @@ def measure_qp_solvers(name: str, with_state: bool, args) -> dict:
     # Parity: one vmapped admm call against qpOASES one state at a time.
     casadi = {s: make_linear_mpc_casadi(env, params, {**options, "casadi_solver": s}) for s in ("qpoases", "osqp")}
     u_jax = {}
-    for solver in ("admm", "ipm", *THROUGHPUT):
+    for solver in ("admm", "active_set", "ipm", *THROUGHPUT):
         c = controllers[solver]
         act = jax.jit(jax.vmap(lambda x, k, c=c: c.act(c.reset(None, reference32), x, k, reference32)))
         u_jax[solver] = np.asarray(act(jnp.asarray(states, jnp.float32), jnp.asarray(steps))[0])
@@ -433,6 +433,7 @@ def measure_qp_solvers(name: str, with_state: bool, args) -> dict:
     u_ref, feasible = np.array(u_ref), np.array(feasible)
     error = _state_errors(u_admm, u_ref, feasible)
     ipm_error = _state_errors(u_jax["ipm"], u_ref, feasible)
+    active_set_error = _state_errors(u_jax["active_set"], u_ref, feasible)
     lo, hi = controllers["admm"].info["u_low"], controllers["admm"].info["u_high"]
     at_bound = np.any((np.abs(u_ref - lo) < 1e-6) | (np.abs(u_ref - hi) < 1e-6), axis=1)[feasible]
     row.update(
@@ -442,6 +443,8 @@ def measure_qp_solvers(name: str, with_state: bool, args) -> dict:
         parity_max_error_N=float(error.max()),
         parity_median_error_N=float(np.median(error)),
         throughput_error_N={setting: _error_summary(u_jax[setting], u_ref, feasible) for setting in THROUGHPUT},
+        active_set_max_error_N=float(active_set_error.max()),
+        active_set_states_beyond_1e3=int((active_set_error > 1e-3).sum()),
         ipm_max_error_N=float(ipm_error.max()),
         ipm_states_beyond_1e3=int((ipm_error > 1e-3).sum()),
         qpoases_qps=1.0 / casadi_s["qpoases"],
@@ -645,6 +648,8 @@ def write_solvers_markdown(path, qp_rows: list[dict], meta: dict, gp_row: dict) 
     batches = meta["config"]["batches"]
     columns = ["system", "constraints", "u0 max error vs qpOASES (N)", "feasible / states", "u0 at a bound"]
     columns += [f"admm QPs/s x{b}" for b in batches]
+    columns += ["active set u0 max error (N)", "active set states > 1e-3 N"]
+    columns += [f"active set QPs/s x{b}" for b in batches]
     columns += ["ipm u0 max error (N)", "ipm states > 1e-3 N"] + [f"ipm QPs/s x{b}" for b in batches]
     columns += [f"qpax QPs/s x{b}" for b in batches if b <= 1024]
     columns += ["qpOASES QPs/s", "OSQP QPs/s"] + [f"env steps/s x{b}" for b in batches]
@@ -653,6 +658,8 @@ def write_solvers_markdown(path, qp_rows: list[dict], meta: dict, gp_row: dict) 
         cells = [r["system"], r["constraints"], f"{r['parity_max_error_N']:.1e}"]
         cells += [f"{r['parity_feasible']} / {r['parity_states']}", f"{r['parity_at_input_bound']:.2f}"]
         cells += [r["batches"][b]["admm_qps"] for b in batches]
+        cells += [f"{r['active_set_max_error_N']:.1e}", r["active_set_states_beyond_1e3"]]
+        cells += [r["batches"][b]["active_set_qps"] for b in batches]
         cells += [f"{r['ipm_max_error_N']:.1e}", r["ipm_states_beyond_1e3"]] + [
             r["batches"][b]["ipm_qps"] for b in batches
         ]
@@ -687,7 +694,11 @@ MPC's defaults (tolerance {LINEAR.admm_tol:g}, at most {LINEAR.admm_max_iter:,} 
 {LINEAR.admm_polish_rounds} rounds of active-set polish, then, where a copy stopped at the cap and no round was
 accepted, at most {LINEAR.admm_dual_active_set_steps} steps of a dual active-set method; under vmap the ADMM's
 passes and the polish's rounds run on the copies still running, {structured.ADMM_CHUNK} at a time, and the dual
-active-set method on the copies that need it, {structured.DUAL_ACTIVE_SET_CHUNK} at a time); ipm:
+active-set method on the copies that need it, {structured.DUAL_ACTIVE_SET_CHUNK} at a time); active set:
+`solver: active_set`, Goldfarb and Idnani's dual active-set method on the condensed QP from its unconstrained
+minimiser (at most {LINEAR.active_set_max_steps} steps, {LINEAR.active_set_slots} rows in the set before a copy is
+solved again with room for all; under vmap {structured.ACTIVE_SET_WHOLE_STEPS} steps over the batch, then the copies
+still running, {structured.ACTIVE_SET_CHUNK} at a time); ipm:
 `scg_algorithms.mpc.interior_point` with linear MPC's defaults (at most {LINEAR.ipm_max_iter} iterations,
 complementarity tolerance {LINEAR.ipm_tol:g}, {LINEAR.ipm_polish_rounds} polish rounds from each of two starts);
 qpax: 40 interior-point iterations; qpOASES and OSQP: `linear_mpc_casadi`, one problem at a time on the host.

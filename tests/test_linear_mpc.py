@@ -222,7 +222,7 @@ def test_jax_and_casadi_soft_constrained_mpc_agree_on_the_quadrotor(quadrotor, p
     assert violated >= 3  # most plans leave the position box: the slacks are priced the same way in both
 
 
-@pytest.mark.parametrize("solver", ["admm", "ipm"])
+@pytest.mark.parametrize("solver", ["admm", "ipm", "active_set"])
 @pytest.mark.parametrize("system", list(cases.CASES))
 def test_linear_mpc_matches_qpoases_to_a_millinewton_with_active_input_and_state_rows(system, solver):
     # Float32, 100 random states per system through one vmapped call (the benchmark runs 1,000); CasADi qpOASES
@@ -251,7 +251,7 @@ def test_linear_mpc_matches_qpoases_to_a_millinewton_with_active_input_and_state
     assert feasible.sum() >= 40
     lo, hi = jax_mpc.info["u_low"], jax_mpc.info["u_high"]
     assert np.all((u_jax >= lo) & (u_jax <= hi))
-    if solver == "admm":
+    if solver in ("admm", "active_set"):
         assert np.all(status[feasible] != structured.INFEASIBLE)
         np.testing.assert_allclose(u_jax[feasible], u_casadi[feasible], atol=1e-3)
     else:
@@ -265,7 +265,7 @@ def test_linear_mpc_matches_qpoases_to_a_millinewton_with_active_input_and_state
     # Active rows among the compared states: a first input at its bound, and a state row with a multiplier.
     at_bound = np.any((np.abs(u_casadi - lo) < 1e-6) | (np.abs(u_casadi - hi) < 1e-6), axis=1)
     assert np.sum(at_bound & feasible) >= 10
-    if solver == "admm":  # the ADMM keeps its multipliers for the warm start
+    if solver in ("admm", "active_set"):  # both keep their multipliers (the ADMM's warm start)
         multipliers = np.asarray(ctrl_state.warm.multipliers).reshape(count, 20, -1)
         state_active = np.any(np.abs(multipliers[:, :, env.nu :]) > 1e-6, axis=(1, 2))
         assert np.sum(state_active & feasible) >= 5
@@ -426,7 +426,7 @@ def test_the_ipm_polish_holds_a_loosely_held_active_set_harder(monkeypatch):
     assert status == structured.NUMERICAL and np.abs(u - u_qpoases).max() > 1e-3
 
 
-@pytest.mark.parametrize("solver", ["admm", "ipm"])
+@pytest.mark.parametrize("solver", ["admm", "ipm", "active_set"])
 def test_an_infeasible_qp_falls_back_to_the_clipped_lqr_input(cartpole, solver):
     # The cart 1 m beyond its 0.3 m bound: no plan meets the hard row at the next state, so the input is LQR's,
     # clipped to the 2 N box. (The first-input test's controller and argument types: the same program, which the
@@ -475,6 +475,22 @@ def test_mpc_holds_an_input_bound_that_lqr_violates():
 
 
 # --------------------------------------------------------------------------------------------- options
+def test_the_default_solver_is_the_active_set_where_it_holds_the_problem_else_the_admm(cartpole):
+    # auto: hard rows and one model (every env's linearisation) take the active set; soft rows, or an ADMM option
+    # given, the ADMM.
+    env, params, _ = cartpole
+    for options, solver in [
+        ({}, "active_set"),
+        ({"soft_constraints": True}, "admm"),
+        ({"admm_max_iter": 50}, "admm"),
+        ({"warm_start": False}, "admm"),
+        ({"solver": "ipm"}, "ipm"),
+    ]:
+        mpc = make_linear_mpc(env, params, {"horizon": 10, **options})
+        assert mpc.info["solver"] == solver, options
+        assert mpc.info["structured"].settings.method == ("dual_active_set" if solver == "active_set" else "admm")
+
+
 @pytest.mark.parametrize(
     "options, message",
     [
@@ -492,7 +508,13 @@ def test_mpc_holds_an_input_bound_that_lqr_violates():
         ({"solver": "ipm", "soft_constraints": True}, r"controllers\.linear_mpc\.soft_constraints: .*allowed.*admm"),
         ({"ipm_max_iter": 0}, r"controllers\.linear_mpc\.ipm_max_iter: must be a positive integer"),
         ({"ipm_tol": 0.0}, r"controllers\.linear_mpc\.ipm_tol: must be positive"),
-        ({"solver": "osqp"}, r"controllers\.linear_mpc\.solver: unknown value 'osqp'.*admm, ipm, qpax"),
+        ({"solver": "osqp"}, r"controllers\.linear_mpc\.solver: unknown value 'osqp'.*admm, ipm, qpax, active_set"),
+        (
+            {"solver": "active_set", "soft_constraints": True},
+            r"controllers\.linear_mpc\.soft_constraints: the active_set solver holds hard constraints only",
+        ),
+        ({"active_set_slots": 0}, r"controllers\.linear_mpc\.active_set_slots: must be a positive integer"),
+        ({"active_set_max_steps": 0}, r"controllers\.linear_mpc\.active_set_max_steps: must be a positive integer"),
     ],
 )
 def test_bad_options_name_the_field(cartpole, options, message):

@@ -534,6 +534,105 @@ def test_the_dual_active_set_method_finds_the_brute_force_minimiser_from_any_sta
         np.testing.assert_array_equal(y[3], 0.0)
 
 
+DUAL = S.Settings(method="dual_active_set", max_iterations=30)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3, 23, 31])
+def test_the_dual_active_set_solver_finds_the_brute_force_minimiser(seed, monkeypatch):
+    # Settings.method="dual_active_set" on the QPs of the test above, in the eigen-coordinates xi = U^T v of
+    # H = U diag(lam) U^T that solve_prepared hands it (GT = G U, h = U^T g), from the minimiser without rows. Seeds
+    # 23 and 31 drop held rows on the way. With one slot a set of more rows (every seed's minimiser but 23's holds 2-4)
+    # outgrows it and the copy is solved again with n = 4; vmapped in chunks of 2 copies after one step over the batch, every copy gives
+    # the minimiser, and the same call twice gives the same bits.
+    rng = np.random.default_rng(seed)
+    n, p = 4, 7
+    M = rng.normal(size=(n, n))
+    H = M @ M.T + 0.1 * np.eye(n)
+    g = 3.0 * rng.normal(size=n)
+    G = np.vstack([np.eye(n), rng.normal(size=(p - n, n))])
+    lo, hi = -np.ones(p), np.ones(p)
+    v_expected, y_expected = _brute_force_qp(H, g, G, lo, hi)
+    assert np.count_nonzero(y_expected) >= (1 if seed == 23 else 2)
+    lam, U = np.linalg.eigh(H)
+    with jax.enable_x64(True):
+        GT, h = jnp.asarray(G @ U), jnp.asarray(U.T @ g)
+        data = S._Scaled(lo=jnp.asarray(lo), hi=jnp.asarray(hi), off=jnp.zeros(p), norms=jnp.ones(p), scale=1.0)
+
+        def solve(h, slots):
+            settings = S.Settings(method="dual_active_set", max_iterations=30, active_set_slots=slots, polish_tol=1e-12)
+            return S._active_set_solve(GT, GT.T, jnp.asarray(lam), h, data, settings)
+
+        for slots in (n, 1):
+            result = jax.jit(solve, static_argnums=1)(h, slots)
+            assert int(result.status) == S.CONVERGED
+            np.testing.assert_allclose(U @ np.asarray(result.primal), v_expected, atol=1e-10)
+            np.testing.assert_allclose(np.asarray(result.y), y_expected, atol=1e-9)
+            np.testing.assert_allclose(np.asarray(result.s), G @ v_expected, atol=1e-10)
+            assert 1 <= int(result.iterations) <= 30
+        monkeypatch.setattr(S, "ACTIVE_SET_CHUNK", 2)
+        monkeypatch.setattr(S, "ACTIVE_SET_WHOLE_STEPS", 1)
+        # Copies: this QP, the same with g = 0 (the minimiser without rows, v = 0, is feasible: no step) and with 2 g.
+        hs = jnp.stack([h, 0.0 * h, 2.0 * h, h, h])
+        batched = jax.jit(jax.vmap(lambda h: solve(h, 1)))
+        first, second = batched(hs), batched(hs)
+        for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(second), strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        np.testing.assert_array_equal(np.asarray(first.status), S.CONVERGED)
+        for i, factor in enumerate([1.0, 0.0, 2.0, 1.0, 1.0]):
+            v, y = _brute_force_qp(H, factor * g, G, lo, hi)
+            np.testing.assert_allclose(U @ np.asarray(first.primal[i]), v, atol=1e-10)
+            np.testing.assert_allclose(np.asarray(first.y[i]), y, atol=1e-9)
+        assert int(first.iterations[1]) == 0
+
+
+def test_the_dual_active_set_solver_gives_the_lqr_plan_the_hand_solved_kkt_system_and_reports_infeasibility():
+    # The closed forms of the ADMM's tests above, prepared and solved by Settings.method="dual_active_set" (float64).
+    A, B = DOUBLE_INTEGRATOR
+    Q, R = np.diag([1.0, 0.1]), np.array([[0.01]])
+    P = scipy.linalg.solve_discrete_are(A, B, Q, R)
+    K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+    bounds = lambda qp: tuple(qp[8:12]) + tuple(qp[14:])  # noqa: E731
+    with jax.enable_x64(True):
+        # Unconstrained: the LQR law at every stage, with no step (no row is violated at the start).
+        layout = S.Layout(horizon=12, nx=2, nu=1)
+        qp = _qp(layout, A, B, Q, R, P=P, K=K, u_box=1e3)
+        x0 = np.array([1.0, -0.5])
+        sol = _solve_prepared(layout, S.prepare(layout, qp, DUAL), x0, qp.c, qp.q, qp.r, bounds(qp), None, DUAL)
+        assert_lqr_plan(sol, x0, K, layout.horizon)
+        assert int(sol.iterations) == 0
+        # One active input bound: u = (-1, -0.35600907), multiplier -0.00736729, in one step.
+        layout = S.Layout(horizon=2, nx=2, nu=1)
+        qp = _qp(layout, A, B, Q, R, u_box=1.0)
+        x0 = np.array([1.0, 0.0])
+        sol = _solve_prepared(layout, S.prepare(layout, qp, DUAL), x0, qp.c, qp.q, qp.r, bounds(qp), None, DUAL)
+        assert int(sol.status) == S.CONVERGED and int(sol.iterations) == 1
+        np.testing.assert_allclose(sol.u[:, 0], [-1.0, -0.35600907], atol=1e-8)
+        np.testing.assert_allclose(sol.multipliers[:, 0], [-0.00736729, 0.0], atol=1e-8)
+    # Infeasible (float32): x_1 = x_0 + u with |u| <= 1 cannot reach x_1 <= 0 from x_0 = 5.
+    layout = S.Layout(horizon=3, nx=1, nu=1, x_rows=(0,))
+    qp = _qp(layout, np.eye(1), np.eye(1), np.eye(1), np.eye(1), u_box=1.0)
+    qp = qp._replace(x_low=np.full((3, 1), -np.inf), x_high=np.zeros((3, 1)))
+    sol = _solve_prepared(layout, S.prepare(layout, qp, DUAL), jnp.array([5.0]), qp.c, qp.q, qp.r, bounds(qp), None,
+                          DUAL)  # fmt: skip
+    assert int(sol.status) == S.INFEASIBLE
+    for leaf in jax.tree.leaves(sol._replace(violation=0.0)):
+        assert np.all(np.isfinite(np.asarray(leaf)))
+    assert float(sol.violation) >= 2.0 - 1e-3
+
+
+def test_the_dual_active_set_method_names_what_it_cannot_do():
+    with pytest.raises(ValueError, match=r"Settings\.method: unknown value 'osqp'; allowed: admm, dual_active_set"):
+        S.Settings(method="osqp")
+    with pytest.raises(ValueError, match=r"Settings\.active_set_slots: must be >= 1"):
+        S.Settings(method="dual_active_set", active_set_slots=0)
+    layout = S.Layout(horizon=3, nx=1, nu=1, x_rows=(0,), soft_x=(True,), l1=10.0)
+    qp = _qp(layout, np.eye(1), np.eye(1), np.eye(1), np.eye(1), u_box=1.0, x_box=np.array([1.0]))
+    with pytest.raises(ValueError, match=r"Settings\.method: 'dual_active_set' holds hard rows only.*'admm'"):
+        S.prepare(layout, qp, DUAL)
+    with pytest.raises(ValueError, match=r"Settings\.method: 'dual_active_set' solves prepared families only"):
+        S.solve(layout, qp, jnp.array([0.5]), None, DUAL)
+
+
 def test_a_held_solve_ignores_the_right_hand_side_of_free_rows_even_infinite_ones():
     # Worked by hand: rows 0 and 2 held, S_HH = diag(2, 4), rhs_H = (1, 2) -> x = (0.5, 0, 0.5); row 1 is free and
     # its right-hand side (a free row's infinite bound, as a one-sided general row has) must not reach the solve.

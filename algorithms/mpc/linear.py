@@ -4,9 +4,12 @@ Two controllers share one ``Options`` dataclass (a config file's ``controllers.l
 ``controllers.linear_mpc_casadi`` sections; the qpax fields are ignored by the CasADi one):
 
 - ``make_linear_mpc`` (registered ``"linear_mpc"``): a ``JaxController`` whose ``act`` solves the QP with the
-  structured horizon-QP solver (``solver="admm"``, default: ``scg_algorithms.mpc.structured``, prepared once on the
-  host when the model is the same at every stage, warm-started from the previous step's shifted plan), with the
-  interior point on the same problem (``solver="ipm"``: ``scg_algorithms.mpc.interior_point``, hard rows only), or
+  structured horizon-QP solver (``scg_algorithms.mpc.structured``, prepared once on the host when the model is the
+  same at every stage): Goldfarb and Idnani's dual active-set method from the unconstrained minimiser
+  (``solver="active_set"``: hard rows and a prepared model only) or the ADMM, warm-started from the previous step's
+  shifted plan (``solver="admm"``); the default ``"auto"`` takes the active set where it applies, else the ADMM.
+  Or with the interior point on the same problem (``solver="ipm"``: ``scg_algorithms.mpc.interior_point``, hard
+  rows only), or
   forms the right-hand side of the condensed QP of ``scg_algorithms.mpc.qp`` and solves it with ``qpax``
   (``solver="qpax"``, a primal-dual interior-point method in JAX); ``jax.vmap`` runs thousands of copies at once.
 - ``make_linear_mpc_casadi`` (registered ``"linear_mpc_casadi"``): the same problem for one copy on the host in the
@@ -57,6 +60,7 @@ iterations, and with admm its warm start and the step it was made at.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from typing import Any, ClassVar, NamedTuple
 
 import jax
@@ -71,7 +75,7 @@ from scg_algorithms.mpc import qp as qp_lib
 
 LINEARIZE_ABOUT = setup.LINEARIZE_ABOUT
 CASADI_SOLVERS = ("qpoases", "osqp")
-SOLVERS = ("admm", "ipm", "qpax")
+SOLVERS = ("auto", "admm", "ipm", "qpax", "active_set")
 PATH = "controllers.linear_mpc"
 CASADI_PATH = "controllers.linear_mpc_casadi"
 
@@ -101,11 +105,22 @@ class Options(setup.MPCOptions):
         True, "condense with the LQR-stabilised prediction (u = u_eq - K dx + v); off, float32 ADMM loses accuracy"
     )
     solver: str = option(
-        "admm",
-        "JAX QP solver: admm (scg_algorithms.mpc.structured: condensed OSQP-style ADMM, factorised once, warm "
-        "started), ipm (scg_algorithms.mpc.interior_point: interior point with Riccati steps and an active-set "
-        "polish; hard constraints only) or qpax (dense interior point)",
+        "auto",
+        "JAX QP solver: auto (active_set where the constraints are hard, the model is the same at every point and "
+        "no admm_* or warm_start option is given, else admm), admm (scg_algorithms.mpc.structured: condensed "
+        "OSQP-style ADMM, factorised once, warm started), ipm (scg_algorithms.mpc.interior_point: interior point "
+        "with Riccati steps and an active-set polish; hard constraints only), qpax (dense interior point) or "
+        "active_set (structured: Goldfarb and Idnani's dual active-set method on the condensed QP from its "
+        "unconstrained minimiser; hard constraints and a model that is the same at every point only)",
         choices=SOLVERS,
+    )
+    active_set_max_steps: int = option(
+        100, "active_set: steps at most per solve (a row joining or leaving the active set; most solves take 0-10)"
+    )
+    active_set_slots: int = option(
+        16,
+        "active_set: active rows held on the first try (a step's cost grows with their square); a solve whose set "
+        "outgrows them is solved again with room for every row",
     )
     admm_max_iter: int = option(1000, "admm: iterations at most per step (each copy stops when converged)")
     admm_tol: float = option(
@@ -159,7 +174,15 @@ class Options(setup.MPCOptions):
     casadi_solver: str = option("qpoases", "conic solver of the CasADi variant", choices=CASADI_SOLVERS)
 
     def _check(self, path: str) -> None:
-        for name in ("horizon", "max_iter", "admm_max_iter", "admm_check_every", "ipm_max_iter"):
+        for name in (
+            "horizon",
+            "max_iter",
+            "admm_max_iter",
+            "admm_check_every",
+            "ipm_max_iter",
+            "active_set_max_steps",
+            "active_set_slots",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{path}.{name}: must be a positive integer, got {getattr(self, name)!r}")
         for name in ("solver_tol", "feasibility_tol", "admm_rho_scale", "ipm_tol"):
@@ -176,9 +199,9 @@ class Options(setup.MPCOptions):
                 raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
         if not 0.0 < self.admm_alpha < 2.0:
             raise ValueError(f"{path}.admm_alpha: must be in the open interval (0, 2), got {self.admm_alpha!r}")
-        if self.solver == "ipm" and self.soft_constraints:
+        if self.solver in ("ipm", "active_set") and self.soft_constraints:
             raise ValueError(
-                f"{path}.soft_constraints: the ipm solver holds hard constraints only; allowed with soft "
+                f"{path}.soft_constraints: the {self.solver} solver holds hard constraints only; allowed with soft "
                 "constraints: solver admm or qpax"
             )
         if self.soft_constraints and self.slack_l1 == 0 and self.slack_l2 == 0:
@@ -332,6 +355,11 @@ def build_problem(env, prior_params, options=None, path: str = PATH) -> Problem:
             f"constraints: the input constraints leave no admissible input (low {u_low.tolist()}, high "
             f"{u_high.tolist()})"
         )
+    if opts.solver == "auto":  # the fastest solver that holds the problem (docs/controllers.md)
+        hard = affine.time_invariant and not opts.soft_constraints
+        # An ADMM option given asks for the ADMM (it would otherwise be ignored).
+        admm_asked = isinstance(options, Mapping) and any(k.startswith("admm_") or k == "warm_start" for k in options)
+        opts = dataclasses.replace(opts, solver="active_set" if hard and not admm_asked else "admm")
     return Problem(opts, model, Q, R, affine, K_lqr, rows, row_of, skipped, u_low, u_high)
 
 
@@ -429,8 +457,11 @@ def structured_mpc(problem: Problem, prepare: bool = True) -> StructuredMPC:
         l1=opts.slack_l1,
         l2=opts.slack_l2,
     )
+    active_set = opts.solver == "active_set"
     settings = structured.Settings(
-        max_iterations=opts.admm_max_iter,
+        method="dual_active_set" if active_set else "admm",
+        active_set_slots=opts.active_set_slots,
+        max_iterations=opts.active_set_max_steps if active_set else opts.admm_max_iter,
         check_every=opts.admm_check_every,
         eps_abs=opts.admm_tol,
         eps_rel=opts.admm_tol,
@@ -503,7 +534,8 @@ def _horizon_qp(problem: Problem, smpc: StructuredMPC, dtype):
 
 
 def _structured_solve(problem: Problem, smpc: StructuredMPC, dtype):
-    """``solve(ctrl_state, x, step, x_ref) -> (u_0, ctrl_state, failed)`` with the admm solver (one copy)."""
+    """``solve(ctrl_state, x, step, x_ref) -> (u_0, ctrl_state, failed)`` with the admm or active_set solver (one
+    copy; the active set method starts from the unconstrained minimiser every step, and ignores the warm start)."""
     opts, layout, H = problem.options, smpc.layout, problem.options.horizon
     qp_at = _horizon_qp(problem, smpc, dtype)
     cold = _no_warm(layout, dtype)
@@ -580,9 +612,14 @@ def make_linear_mpc(env, prior_params, options=None) -> JaxController:
     u_low = jnp.asarray(problem.u_low, dtype)
     u_high = jnp.asarray(problem.u_high, dtype)
     last_point = problem.K_lqr.shape[0] - 1
-    if opts.solver in ("admm", "ipm"):
-        smpc = structured_mpc(problem, prepare=opts.solver == "admm")
-        make_solve = _structured_solve if opts.solver == "admm" else _ipm_solve
+    if opts.solver == "active_set" and not problem.affine.time_invariant:
+        raise ValueError(
+            f"{PATH}.solver: active_set needs a model that is the same at every point (linearize_about: goal, or a "
+            "reference along which the linearisation does not change); allowed here: admm, ipm, qpax"
+        )
+    if opts.solver in ("admm", "ipm", "active_set"):
+        smpc = structured_mpc(problem, prepare=opts.solver != "ipm")
+        make_solve = _ipm_solve if opts.solver == "ipm" else _structured_solve
         solve_structured = make_solve(problem, smpc, dtype)
         empty = _no_warm(smpc.layout, dtype)
         status_names = structured.STATUS_NAMES
