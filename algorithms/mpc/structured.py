@@ -1,4 +1,5 @@
-"""The structured horizon-QP solver every MPC-based method uses in JAX: condensing and an OSQP-style ADMM.
+"""The structured horizon-QP solver every MPC-based method uses in JAX: condensing, an OSQP-style ADMM and a dual
+active-set method.
 
 Problem (one copy; ``N`` stages, ``nx`` states, ``nu`` inputs; the env's convention: stage ``k`` constrains the
 state it reaches and the input it commands)::
@@ -69,6 +70,15 @@ with its acceptance tolerances; more than one round: compacted as the ADMM's seg
 stopped at the cap and whose rounds found no acceptable plan, at most ``dual_active_set_steps`` steps of a dual
 active-set method (``_dual_active_set``, run only for the copies that need it, ``DUAL_ACTIVE_SET_CHUNK`` at a
 time: ``scg_jax.tracing.where_needed``).
+
+**Dual active-set method** (``Settings.method = "dual_active_set"``; ``prepare`` + ``solve_prepared`` with hard rows
+only). Goldfarb and Idnani's method in the coordinates ``xi`` (``H = diag(lam)`` there) from the minimiser without
+rows, ``xi = -T^T g / lam``: each step raises the force on the most violated row until it reaches its bound or a held
+multiplier reaches zero; the set's rows and the inverse of its Schur matrix are kept in ``active_set_slots`` slots
+and updated per step (``_active_set_solve``). ``max_iterations`` caps the steps. Where few rows are active at the
+solution (linear MPC: a mean of 0.7-7 steps on the check problems) it is several times as fast as the ADMM, and
+exact to float32's rounding. Under ``vmap`` on a CPU the copies still running after ``ACTIVE_SET_WHOLE_STEPS`` steps
+are gathered, ``ACTIVE_SET_CHUNK`` at a time. It takes no warm start; its ``Solution.warm`` has ``rho = 0``.
 
 **Solution.** The inputs are taken from the projected ``s`` (inside their box whatever the iteration count), the
 states from ``v~`` through the model. ``status``: ``CONVERGED`` (0); ``MAX_ITERATIONS`` (1: the last iterate, with

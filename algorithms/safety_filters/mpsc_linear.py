@@ -141,7 +141,16 @@ class Options:
         "near the LQR's (W: mpsc_structured.plan_weight)",
     )
     solver: str = option("structured", SOLVER_DOC, choices=SOLVERS)
-    structured_max_iter: int = option(300, "structured: ADMM iterations at most per step (stops once converged)")
+    structured_method: str = option(
+        "admm",
+        "structured: admm (the ADMM, its polish and dual active-set fallback; warm started) or dual_active_set "
+        "(Goldfarb and Idnani's dual active-set method from the unconstrained minimiser; hard rows only, "
+        "violation_penalty 0; structured_max_iter caps its steps)",
+        choices=structured.METHODS,
+    )
+    structured_max_iter: int = option(
+        300, "structured: ADMM iterations (dual_active_set: steps) at most per step (stops once converged)"
+    )
     structured_tol: float = option(1e-5, "structured: absolute and relative residual tolerance of the scaled QP")
     structured_check_every: int = option(10, "structured: iterations between residual checks and step-size updates")
     structured_polish_rounds: int = option(3, "structured: active-set polish rounds after the ADMM (0: none)")
@@ -209,6 +218,11 @@ class Options:
         for name in (*nonnegative, "terminal_rows", "violation_penalty"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{path}.{name}: must be >= 0, got {getattr(self, name)!r}")
+        if self.structured_method == "dual_active_set" and self.violation_penalty > 0:
+            raise ValueError(
+                f"{path}.structured_method: dual_active_set holds hard rows only, and violation_penalty > 0 makes the "
+                "state rows soft; allowed with violation_penalty > 0: admm"
+            )
         if self.structured_polish_soft_rows and self.structured_dual_active_set_steps:
             raise ValueError(
                 f"{path}.structured_polish_soft_rows: not with structured_dual_active_set_steps > 0 (the dual "

@@ -251,6 +251,7 @@ def build(problem) -> StructuredMPSC:
         "check_every", "polish_rounds", "polish_soft_rows", "dual_active_set_steps", "adaptive_rho", "rho_scale",
     )  # fmt: skip
     settings = structured.Settings(
+        method=opts.structured_method,
         max_iterations=opts.structured_max_iter,
         eps_abs=tol,
         eps_rel=tol,
