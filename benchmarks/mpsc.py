@@ -1,12 +1,12 @@
-"""Model predictive safety filters: calls per second of the batched linear MPSC (the structured solver, the default;
-the fixed-iteration shared-factorisation ADMM; qpax) at 1, 1,024 and 4,096 copies next to the env's own steps per
-second in the same run, the CasADi filters' time per call (linear qpOASES, nonlinear IPOPT), and the closed-loop
-acceptance experiment at scale (``mpsc_experiment``: episodes with any violation, unfiltered vs filtered, true model
-and 150% prior).
+"""Model predictive safety filters: calls per second of the batched linear MPSC (the structured solver, the default, and
+its dual active-set method; the fixed-iteration shared-factorisation ADMM; qpax) at 1, 1,024 and 4,096 copies next to
+the env's own steps per second in the same run, the CasADi filters' time per call (linear qpOASES, nonlinear IPOPT),
+and the closed-loop acceptance experiment at scale (``mpsc_experiment``: episodes with any violation, unfiltered vs
+filtered, true model and 150% prior).
 
 Each batch size is timed on random cart-pole states after one compile call, twice: from a cold start and warm-started
-from the first call's solution on the same states (a closed loop's steps are warm-started); 4,096 copies runs only
-while the time cap allows (``--cap-s``). Writes ``docs/benchmarks/mpsc.md``. Run: ``python benchmarks/mpsc.py``.
+from the first call's solution on the same states (a closed loop's steps are warm-started); 4,096 copies runs only while
+the time cap allows (``--cap-s``). Writes ``docs/benchmarks/mpsc.md``. Run: ``python benchmarks/mpsc.py``.
 """
 
 from __future__ import annotations
@@ -45,6 +45,8 @@ FAST = {
 }  # fmt: skip
 # The polish holding the soft state rows as well: the certified plans are the soft QP's exact solutions.
 EXACT = {**SOFT, "structured_polish_rounds": 6, "structured_polish_soft_rows": True}
+# The dual active-set method alone on the default (hard) rows, from the unconstrained minimiser: exact, no warm start.
+DUAL = {"structured_method": "dual_active_set"}
 
 
 def _states(count, seed=0):
@@ -141,6 +143,7 @@ def closed_loop_table(episodes: int) -> str:
         ("linear_mpsc_casadi (qpOASES), true model", params, OPTIONS, on_host),
         ("linear_mpsc, true model, soft rows (earlier defaults)", params, {**OPTIONS, **SOFT}),
         ("linear_mpsc, true model, 50 it., step x10", params, {**OPTIONS, **FAST}),
+        ("linear_mpsc, true model, dual active set", params, {**OPTIONS, **DUAL}),
         ("linear_mpsc, true model, soft rows polished", params, {**OPTIONS, **EXACT}),
         ("linear_mpsc, true model, tightening none", params, none),
         ("linear_mpsc, 150% prior, reachable tightening", prior, OPTIONS),
@@ -193,6 +196,7 @@ def main(argv=None):
         "linear_mpsc structured (default)": make_linear_mpsc(env, params, OPTIONS),
         "linear_mpsc structured, soft rows (earlier defaults)": make_linear_mpsc(env, params, {**OPTIONS, **SOFT}),
         "linear_mpsc structured, 50 it., step x10": make_linear_mpsc(env, params, {**OPTIONS, **FAST}),
+        "linear_mpsc structured, dual active set": make_linear_mpsc(env, params, {**OPTIONS, **DUAL}),
         "linear_mpsc structured, soft rows polished": make_linear_mpsc(env, params, {**OPTIONS, **EXACT}),
         "linear_mpsc ADMM 500 it": make_linear_mpsc(env, params, {**OPTIONS, "solver": "admm"}),
         "linear_mpsc qpax 40 it": make_linear_mpsc(env, params, {**OPTIONS, "solver": "qpax"}),

@@ -133,6 +133,20 @@ def test_float32_structured_filter_equals_casadi_reference(structured_float32, f
     np.testing.assert_allclose(u_out[found], float32_parity[3][found], atol=1e-3)
 
 
+def test_the_dual_active_set_filter_certifies_exactly_where_qpoases_does_with_its_input(env, float32_parity):
+    """``structured_method: dual_active_set`` (the method alone, from the unconstrained minimiser, no warm start) in
+    float32 on the default's hard rows: it certifies exactly where qpOASES does, with its input within 1e-3 N; with
+    violation_penalty > 0 (soft rows) it refuses to build."""
+    f = make_linear_mpsc(env, env.default_params, {**OPTIONS, "structured_method": "dual_active_set"})
+    assert f.info["structured"].settings.method == "dual_active_set"
+    u_out, found = _certified_where_qpoases_is(f, float32_parity)
+    np.testing.assert_array_equal(found, float32_parity[2])
+    np.testing.assert_allclose(u_out[found], float32_parity[3][found], atol=1e-3)
+    with pytest.raises(ValueError, match=r"safety_filters\.linear_mpsc\.structured_method: dual_active_set holds hard"):
+        make_linear_mpsc(env, env.default_params, {**OPTIONS, "structured_method": "dual_active_set",
+                                                   "violation_penalty": 1e4})  # fmt: skip
+
+
 def test_the_fixed_iteration_filter_certifies_like_qpoases_with_a_prepared_admm_over_the_nonzero_rows(
     env, float32_parity
 ):

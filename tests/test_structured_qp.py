@@ -474,6 +474,17 @@ def _brute_force_qp(H, g, G, lo, hi):
     raise AssertionError("no active set meets the KKT conditions")
 
 
+def _random_boxed_qp(seed: int, n: int = 4, p: int = 7):
+    """``(H, g, G, lo, hi)``: a random strictly convex QP with a box on each of ``n`` variables and ``p - n`` general
+    rows, all within [-1, 1], its unconstrained minimiser pushed outside (``g`` large)."""
+    rng = np.random.default_rng(seed)
+    M = rng.normal(size=(n, n))
+    H = M @ M.T + 0.1 * np.eye(n)
+    g = 3.0 * rng.normal(size=n)
+    G = np.vstack([np.eye(n), rng.normal(size=(p - n, n))])
+    return H, g, G, -np.ones(p), np.ones(p)
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2, 3, 23, 31])
 def test_the_dual_active_set_method_finds_the_brute_force_minimiser_from_any_start(seed, monkeypatch):
     # Goldfarb and Idnani's method (the polish's fallback) on random strictly convex QPs with 4 variables and 7 rows
@@ -481,13 +492,8 @@ def test_the_dual_active_set_method_finds_the_brute_force_minimiser_from_any_sta
     # is gathered. Its start is the empty set, a set with wrong-signed rows to drop, or more rows than it can hold.
     # From the empty set, seeds 23 and 31 drop held rows on the way (2 and 3 times: a held multiplier reaches zero
     # before the row taken up meets its bound); seeds 0-3 only add rows.
-    rng = np.random.default_rng(seed)
-    n, p = 4, 7
-    M = rng.normal(size=(n, n))
-    H = M @ M.T + 0.1 * np.eye(n)
-    g = 3.0 * rng.normal(size=n)
-    G = np.vstack([np.eye(n), rng.normal(size=(p - n, n))])
-    lo, hi = -np.ones(p), np.ones(p)
+    H, g, G, lo, hi = _random_boxed_qp(seed)
+    n, p = G.shape[1], G.shape[0]
     v_expected, y_expected = _brute_force_qp(H, g, G, lo, hi)
     with jax.enable_x64(True):
         inv_G, inv_g = (jnp.asarray(a) for a in (np.linalg.solve(H, G.T), np.linalg.solve(H, g)))
@@ -541,16 +547,11 @@ DUAL = S.Settings(method="dual_active_set", max_iterations=30)
 def test_the_dual_active_set_solver_finds_the_brute_force_minimiser(seed, monkeypatch):
     # Settings.method="dual_active_set" on the QPs of the test above, in the eigen-coordinates xi = U^T v of
     # H = U diag(lam) U^T that solve_prepared hands it (GT = G U, h = U^T g), from the minimiser without rows. Seeds
-    # 23 and 31 drop held rows on the way. With one slot a set of more rows (every seed's minimiser but 23's holds 2-4)
-    # outgrows it and the copy is solved again with n = 4; vmapped in chunks of 2 copies after one step over the batch, every copy gives
-    # the minimiser, and the same call twice gives the same bits.
-    rng = np.random.default_rng(seed)
-    n, p = 4, 7
-    M = rng.normal(size=(n, n))
-    H = M @ M.T + 0.1 * np.eye(n)
-    g = 3.0 * rng.normal(size=n)
-    G = np.vstack([np.eye(n), rng.normal(size=(p - n, n))])
-    lo, hi = -np.ones(p), np.ones(p)
+    # 23 and 31 drop held rows on the way. With one slot a set of more rows (every seed's minimiser but 23's holds
+    # 2-4) outgrows it and the copy is solved again with n = 4; vmapped in chunks of 2 copies after one step over the
+    # batch, every copy gives the minimiser, and the same call twice gives the same bits.
+    H, g, G, lo, hi = _random_boxed_qp(seed)
+    n, p = G.shape[1], G.shape[0]
     v_expected, y_expected = _brute_force_qp(H, g, G, lo, hi)
     assert np.count_nonzero(y_expected) >= (1 if seed == 23 else 2)
     lam, U = np.linalg.eigh(H)
