@@ -127,9 +127,9 @@ ADMM_CHUNK = 256
 POLISH_CHUNK = 256
 # The dual active-set solver (``Settings.method``): steps every copy of a batch takes together before the copies that
 # still run are gathered, ACTIVE_SET_CHUNK at a time (on a CPU; see _chunk). Most copies stop within two steps (on the
-# 2D quadrotor's position box 60% at the start, 97% of the feasible ones within five), so later passes over the whole
-# batch would mostly wait; chunks of 32-64 did best on the 2-core machine at 4,096 copies (256: 47k QPs/s there
-# against 57-64k).
+# 2D quadrotor's position box 43% of the copies need none, 87% of the feasible ones at most two, 97% at most five), so
+# later passes over the whole batch would mostly wait; chunks of 32-64 did best on the 2-core machine at 4,096 copies
+# (256: 47k QPs/s there against 57-64k).
 ACTIVE_SET_WHOLE_STEPS = 2
 ACTIVE_SET_CHUNK = 64
 METHODS = ("admm", "dual_active_set")
