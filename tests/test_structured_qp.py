@@ -549,7 +549,8 @@ def test_the_dual_active_set_solver_finds_the_brute_force_minimiser(seed, monkey
     # H = U diag(lam) U^T that solve_prepared hands it (GT = G U, h = U^T g), from the minimiser without rows. Seeds
     # 23 and 31 drop held rows on the way. With one slot a set of more rows (every seed's minimiser but 23's holds
     # 2-4) outgrows it and the copy is solved again with n = 4; vmapped in chunks of 2 copies after one step over the
-    # batch, every copy gives the minimiser, and the same call twice gives the same bits.
+    # batch, every copy gives the minimiser, and the same call twice gives the same bits; the plain loops of an
+    # accelerator give the same.
     H, g, G, lo, hi = _random_boxed_qp(seed)
     n, p = G.shape[1], G.shape[0]
     v_expected, y_expected = _brute_force_qp(H, g, G, lo, hi)
@@ -584,6 +585,12 @@ def test_the_dual_active_set_solver_finds_the_brute_force_minimiser(seed, monkey
             np.testing.assert_allclose(U @ np.asarray(first.primal[i]), v, atol=1e-10)
             np.testing.assert_allclose(np.asarray(first.y[i]), y, atol=1e-9)
         assert int(first.iterations[1]) == 0
+        # An accelerator's path (structured._chunk gives None there): plain loops over the batch, the same plans.
+        monkeypatch.setattr(S, "_chunk", lambda size: None)
+        plain = jax.jit(jax.vmap(lambda h: solve(h, 1)))(hs)
+        np.testing.assert_array_equal(np.asarray(plain.status), S.CONVERGED)
+        np.testing.assert_allclose(np.asarray(plain.primal), np.asarray(first.primal), atol=1e-12)
+        np.testing.assert_array_equal(np.asarray(plain.iterations), np.asarray(first.iterations))
 
 
 def test_the_dual_active_set_solver_gives_the_lqr_plan_the_hand_solved_kkt_system_and_reports_infeasibility():
