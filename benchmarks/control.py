@@ -616,7 +616,8 @@ def measure_rti(name: str, args) -> list[dict]:
     return rows
 
 
-LINEAR = LinearOptions()  # the linear MPC's defaults, which the page's "admm" columns run
+# The linear MPC's defaults: the page's "admm" columns run its ADMM ones, the "active set" columns its active-set ones.
+LINEAR = LinearOptions()
 
 
 def write_rti_markdown(path, rti_rows: list[dict], meta: dict) -> None:
@@ -690,7 +691,7 @@ def write_solvers_markdown(path, qp_rows: list[dict], meta: dict, gp_row: dict) 
     notes = f"""
 Linear MPC, horizon {meta["config"]["horizon"]}, float32, random states around the reference (the parity tests'
 sets; u0 error over the states qpOASES solves), each solved cold. admm: `scg_algorithms.mpc.structured` with linear
-MPC's defaults (tolerance {LINEAR.admm_tol:g}, at most {LINEAR.admm_max_iter:,} iterations and
+MPC's ADMM defaults (tolerance {LINEAR.admm_tol:g}, at most {LINEAR.admm_max_iter:,} iterations and
 {LINEAR.admm_polish_rounds} rounds of active-set polish, then, where a copy stopped at the cap and no round was
 accepted, at most {LINEAR.admm_dual_active_set_steps} steps of a dual active-set method; under vmap the ADMM's
 passes and the polish's rounds run on the copies still running, {structured.ADMM_CHUNK} at a time, and the dual
