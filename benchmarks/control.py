@@ -698,8 +698,9 @@ passes and the polish's rounds run on the copies still running, {structured.ADMM
 active-set method on the copies that need it, {structured.DUAL_ACTIVE_SET_CHUNK} at a time); active set:
 `solver: active_set`, Goldfarb and Idnani's dual active-set method on the condensed QP from its unconstrained
 minimiser (at most {LINEAR.active_set_max_steps} steps, {LINEAR.active_set_slots} rows in the set before a copy is
-solved again with room for all; under vmap {structured.ACTIVE_SET_WHOLE_STEPS} steps over the batch, then the copies
-still running, {structured.ACTIVE_SET_CHUNK} at a time); ipm:
+solved again with {structured.ACTIVE_SET_GROWTH} times as many; under vmap
+{structured.ACTIVE_SET_WHOLE_STEPS} steps over the batch, then the copies still running,
+{structured.ACTIVE_SET_CHUNK} at a time); ipm:
 `scg_algorithms.mpc.interior_point` with linear MPC's defaults (at most {LINEAR.ipm_max_iter} iterations,
 complementarity tolerance {LINEAR.ipm_tol:g}, {LINEAR.ipm_polish_rounds} polish rounds from each of two starts);
 qpax: 40 interior-point iterations; qpOASES and OSQP: `linear_mpc_casadi`, one problem at a time on the host.

@@ -118,9 +118,9 @@ class Options(setup.MPCOptions):
         100, "active_set: steps at most per solve (a row joining or leaving the active set; most solves take 0-10)"
     )
     active_set_slots: int = option(
-        16,
+        8,
         "active_set: active rows held on the first try (a step's cost grows with their square); a solve whose set "
-        "outgrows them is solved again with room for every row",
+        "outgrows them is solved again with 4 times as many, up to every row it can hold",
     )
     admm_max_iter: int = option(1000, "admm: iterations at most per step (each copy stops when converged)")
     admm_tol: float = option(

@@ -132,6 +132,8 @@ POLISH_CHUNK = 256
 # (256: 47k QPs/s there against 57-64k).
 ACTIVE_SET_WHOLE_STEPS = 2
 ACTIVE_SET_CHUNK = 64
+# A copy whose set outgrows its slots is solved again with this many times as many (at most every row it can hold).
+ACTIVE_SET_GROWTH = 4
 METHODS = ("admm", "dual_active_set")
 
 
@@ -252,8 +254,8 @@ class Settings:
             ``_active_set_solve``; ``max_iterations`` caps its steps, ``active_set_slots`` sizes its set; every other
             field but ``polish_tol`` is the ADMM's).
         active_set_slots: rows the dual active-set method's set holds on its first try (its cost per step grows with
-            the square of the count); a copy whose set would outgrow them is solved again with room for every row it
-            can hold (``min(n, rows)``).
+            the square of the count); a copy whose set would outgrow them is solved again with ``ACTIVE_SET_GROWTH``
+            times as many, up to every row it can hold (``min(n, rows)``).
         max_iterations: cap on iterations (rounded up to a multiple of ``check_every``). check_every: iterations
             between residual checks, infeasibility tests and step-size updates.
         eps_abs, eps_rel: stopping test on the scaled problem (both 0: run to the cap). eps_infeasible: the
@@ -282,7 +284,7 @@ class Settings:
     """
 
     method: str = "admm"
-    active_set_slots: int = 16
+    active_set_slots: int = 8
     max_iterations: int = 200
     check_every: int = 10
     eps_abs: float = 1e-5
@@ -1382,7 +1384,8 @@ def _active_set_solve(GT, GT_t, lam_xi, h, data: _Scaled, settings: Settings) ->
     after ``max_iterations`` steps (``MAX_ITERATIONS``, with the violation of the last plan). The set is kept in
     ``active_set_slots`` slots: its rows of ``GT`` and the inverse of its Schur matrix, updated in ``O(k^2 + k n)``
     per step (``_follow_set``); a step also forms every row's value (``p n``), about an ADMM iteration. A copy whose
-    set would outgrow the slots is solved again with ``min(n, p)`` of them (only those copies: ``where_needed``).
+    set would outgrow the slots is solved again with ``ACTIVE_SET_GROWTH`` times as many, up to ``min(n, p)`` (only
+    those copies: ``where_needed``).
     At the end one correction with the kept inverse puts the held rows at their bounds.
 
     Where most rows stay free at the solution this takes few steps: on linear MPC's check problems (1,000 random
@@ -1400,17 +1403,15 @@ def _active_set_solve(GT, GT_t, lam_xi, h, data: _Scaled, settings: Settings) ->
     args = (GT, GT_t, lam_xi, data.lo, data.hi)
     most = min(n, p)
     k = min(settings.active_set_slots, most)
-    xi, s, y, status, steps, overflow = _active_set_run(
-        args, h, k, settings.max_iterations, tol, _chunk(ACTIVE_SET_CHUNK)
-    )
-    if k < most:
+    result = _active_set_run(args, h, k, settings.max_iterations, tol, _chunk(ACTIVE_SET_CHUNK))
+    while k < most:  # the copies whose set outgrew k slots, again with up to ACTIVE_SET_GROWTH times as many
+        k = min(ACTIVE_SET_GROWTH * k, most)
 
-        def again(args, h):
-            return _active_set_run(args, h, most, settings.max_iterations, tol, None)[:5]
+        def again(args, h, k=k):
+            return _active_set_run(args, h, k, settings.max_iterations, tol, None)
 
-        xi, s, y, status, steps = where_needed(
-            again, overflow, (args, h), (xi, s, y, status, steps), _chunk(ACTIVE_SET_CHUNK)
-        )
+        result = where_needed(again, result[5], (args, h), result, _chunk(ACTIVE_SET_CHUNK))
+    xi, s, y, status, steps, _ = result
     violation = _norm(jnp.maximum(jnp.maximum(s - data.hi, data.lo - s), 0.0) * data.norms)
     converged = status == CONVERGED
     return _Result(
