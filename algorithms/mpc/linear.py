@@ -174,15 +174,8 @@ class Options(setup.MPCOptions):
     casadi_solver: str = option("qpoases", "conic solver of the CasADi variant", choices=CASADI_SOLVERS)
 
     def _check(self, path: str) -> None:
-        for name in (
-            "horizon",
-            "max_iter",
-            "admm_max_iter",
-            "admm_check_every",
-            "ipm_max_iter",
-            "active_set_max_steps",
-            "active_set_slots",
-        ):
+        counts = ("horizon", "max_iter", "admm_max_iter", "admm_check_every", "ipm_max_iter", "active_set_max_steps")
+        for name in (*counts, "active_set_slots"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{path}.{name}: must be a positive integer, got {getattr(self, name)!r}")
         for name in ("solver_tol", "feasibility_tol", "admm_rho_scale", "ipm_tol"):
