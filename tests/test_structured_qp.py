@@ -548,9 +548,9 @@ def test_the_dual_active_set_solver_finds_the_brute_force_minimiser(seed, monkey
     # Settings.method="dual_active_set" on the QPs of the test above, in the eigen-coordinates xi = U^T v of
     # H = U diag(lam) U^T that solve_prepared hands it (GT = G U, h = U^T g), from the minimiser without rows. Seeds
     # 23 and 31 drop held rows on the way. With one slot a set of more rows (every seed's minimiser but 23's holds
-    # 2-4) outgrows it and the copy is solved again with n = 4; vmapped in chunks of 2 copies after one step over the
-    # batch, every copy gives the minimiser, and the same call twice gives the same bits; the plain loops of an
-    # accelerator give the same.
+    # 2-4) outgrows it and the copy is solved again with n = 4 (vmapped below: with 2, then 4); vmapped in chunks of 2
+    # copies after one step over the batch, every copy gives the minimiser, and the same call twice gives the same
+    # bits; the plain loops of an accelerator give the same.
     H, g, G, lo, hi = _random_boxed_qp(seed)
     n, p = G.shape[1], G.shape[0]
     v_expected, y_expected = _brute_force_qp(H, g, G, lo, hi)
@@ -573,6 +573,7 @@ def test_the_dual_active_set_solver_finds_the_brute_force_minimiser(seed, monkey
             assert 1 <= int(result.iterations) <= 30
         monkeypatch.setattr(S, "ACTIVE_SET_CHUNK", 2)
         monkeypatch.setattr(S, "ACTIVE_SET_WHOLE_STEPS", 1)
+        monkeypatch.setattr(S, "ACTIVE_SET_GROWTH", 2)  # 1, then 2, then 4 slots: every retry
         # Copies: this QP, the same with g = 0 (the minimiser without rows, v = 0, is feasible: no step) and with 2 g.
         hs = jnp.stack([h, 0.0 * h, 2.0 * h, h, h])
         batched = jax.jit(jax.vmap(lambda h: solve(h, 1)))
