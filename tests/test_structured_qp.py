@@ -543,14 +543,14 @@ def test_the_dual_active_set_method_finds_the_brute_force_minimiser_from_any_sta
 DUAL = S.Settings(method="dual_active_set", max_iterations=30)
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2, 3, 23, 31])
+@pytest.mark.parametrize("seed", [0, 23, 31])
 def test_the_dual_active_set_solver_finds_the_brute_force_minimiser(seed, monkeypatch):
-    # Settings.method="dual_active_set" on the QPs of the test above, in the eigen-coordinates xi = U^T v of
-    # H = U diag(lam) U^T that solve_prepared hands it (GT = G U, h = U^T g), from the minimiser without rows. Seeds
-    # 23 and 31 drop held rows on the way. With one slot a set of more rows (every seed's minimiser but 23's holds
-    # 2-4) outgrows it and the copy is solved again with n = 4 (vmapped below: with 2, then 4); vmapped in chunks of 2
-    # copies after one step over the batch, every copy gives the minimiser, and the same call twice gives the same
-    # bits; the plain loops of an accelerator give the same.
+    # Settings.method="dual_active_set" on three of the QPs of the test above, in the eigen-coordinates xi = U^T v
+    # of H = U diag(lam) U^T that solve_prepared hands it (GT = G U, h = U^T g), from the minimiser without rows.
+    # Seeds 23 and 31 drop held rows on the way (seed 0 only adds). With one slot a set of more rows (every seed's
+    # minimiser but 23's holds 2-4) outgrows it and the copy is solved again with n = 4 (vmapped below: with 2,
+    # then 4); vmapped in chunks of 2 copies after one step over the batch, every copy gives the minimiser, and
+    # the same call twice gives the same bits; the plain loops of an accelerator give the same.
     H, g, G, lo, hi = _random_boxed_qp(seed)
     n, p = G.shape[1], G.shape[0]
     v_expected, y_expected = _brute_force_qp(H, g, G, lo, hi)
