@@ -1041,6 +1041,14 @@ def _polish(
     )
 
 
+def _most_violated(held, s, lo, hi):
+    """``(j, sigma, violation)``: the free row that crosses its bound the most (ties: the first) and which bound."""
+    above, below = s - hi, lo - s
+    violation = jnp.where(held, -jnp.inf, jnp.maximum(above, below))
+    j = _first_extreme(violation, largest=True)
+    return j, jnp.where(above[j] >= below[j], 1.0, -1.0).astype(s.dtype), violation[j]
+
+
 class _Move(NamedTuple):
     """One step of Goldfarb and Idnani's method in slot form (``_dual_step``)."""
 
@@ -1182,12 +1190,10 @@ def _dual_active_set(
             return ops.correct(primal_free, index, lam[index])
 
         def pick(side, lam, j, sigma, stuck, steps, primal, s):
-            above, below = s - hi, lo - s
-            violation = jnp.where(hard & (side == 0), jnp.maximum(above, below), -jnp.inf)
-            worst = _first_extreme(violation, largest=True)
+            worst, worst_sigma, violation = _most_violated(~hard | (side != 0), s, lo, hi)
             new_j = jnp.where(j >= 0, j, worst)
-            new_sigma = jnp.where(j >= 0, sigma, jnp.where(above[worst] >= below[worst], 1.0, -1.0).astype(dtype))
-            met = (j < 0) & (violation[worst] <= 0.5 * tol)
+            new_sigma = jnp.where(j >= 0, sigma, worst_sigma)
+            met = (j < 0) & (violation <= 0.5 * tol)
             return side, lam, new_j, new_sigma, met, stuck, steps, (primal, s)
 
         def restore(carry):
@@ -1263,14 +1269,6 @@ class _Slots(NamedTuple):
     blocked: Any  # j cannot be met: the rows admit no plan
     overflow: Any  # j would join a set whose slots are all in use
     steps: Any
-
-
-def _most_violated(held, s, lo, hi):
-    """``(j, sigma, violation)``: the free row that crosses its bound the most (ties: the first) and which bound."""
-    above, below = s - hi, lo - s
-    violation = jnp.where(held, -jnp.inf, jnp.maximum(above, below))
-    j = _first_extreme(violation, largest=True)
-    return j, jnp.where(above[j] >= below[j], 1.0, -1.0).astype(s.dtype), violation[j]
 
 
 def _active_set_steps(args, carry: _Slots, tol) -> _Slots:
